@@ -1,0 +1,113 @@
+"""D4RL-format HDF5 files (``observations``, ``actions``, ``rewards``, ``terminals``, ``timeouts``)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from rm_torchrl.errors import RMError
+
+EPISODE_ENDS = ("auto", "terminals", "timeouts", "both")
+_JUMP = 10.0  # a real episode boundary moves the observation this many median steps at least
+
+
+def _read(f, name: str, path: Path) -> np.ndarray:
+    if name not in f:
+        raise RMError(f"{path} is not a D4RL dataset: it has no {name!r} array (found {sorted(f.keys())})")
+    return f[name][()]
+
+
+def _boundaries_consistent(obs: np.ndarray, flags: np.ndarray) -> bool:
+    """Whether every flagged row (but the last) is followed by a jump in the observation."""
+    rows = np.flatnonzero(flags[:-1])
+    if rows.size == 0:
+        return True
+    steps = np.linalg.norm(np.diff(obs, axis=0), axis=1)
+    typical = np.median(steps) or 1e-12
+    return bool((steps[rows] > _JUMP * typical).all())
+
+
+def episode_end_flags(obs: np.ndarray, terminals: np.ndarray, timeouts: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
+    """The rows that end an episode, and which flags were used.
+
+    ``auto`` takes both flags, else terminals only, else timeouts only: the first choice whose
+    every boundary is a jump in the observation (D4RL v0 files such as door-human-v0 carry
+    timeouts that do not sit at episode ends).
+    """
+    if mode not in EPISODE_ENDS:
+        raise RMError(f"episode_ends must be one of {list(EPISODE_ENDS)}, got {mode!r}")
+    choices = {"both": terminals | timeouts, "terminals": terminals, "timeouts": timeouts}
+    if mode != "auto":
+        return choices[mode], mode
+    for name, flags in choices.items():
+        if _boundaries_consistent(obs, flags):
+            return flags, name
+    raise RMError(
+        "neither terminals nor timeouts mark consistent episode boundaries in this file "
+        "(the observation does not jump after them); choose with episode_ends / --episode-ends"
+    )
+
+
+def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
+    """Transitions of a D4RL file in TorchRL's offline layout; an episode of T steps gives T-1.
+
+    Keys: ``observation``, ``action``, ``("next", "observation")``, ``("next", "reward")``,
+    ``("next", "terminated" | "truncated" | "done")`` and ``episode``. ``terminated`` copies the
+    D4RL terminal flag of the step; the last transition of an episode that is not terminal is
+    truncated.
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise RMError(f"dataset file {path} does not exist")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
+    with f:
+        obs = _read(f, "observations", path)
+        actions = _read(f, "actions", path)
+        rewards = _read(f, "rewards", path)
+        terminals = _read(f, "terminals", path).astype(bool)
+        timeouts = f["timeouts"][()].astype(bool) if "timeouts" in f else np.zeros_like(terminals)
+    n = obs.shape[0]
+    if n == 0:
+        raise RMError(f"{path} holds no steps")
+    if obs.ndim != 2 or actions.ndim != 2:
+        raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
+    for name, arr in (("actions", actions), ("rewards", rewards), ("terminals", terminals), ("timeouts", timeouts)):
+        if arr.shape[0] != n:
+            raise RMError(f"{path}: {name} has {arr.shape[0]} rows but observations has {n}")
+    if not np.isfinite(obs).all():
+        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
+    ends, _ = episode_end_flags(obs, terminals, timeouts, episode_ends)
+    ends = ends.copy()
+    ends[-1] = True
+    episode = np.concatenate([[0], np.cumsum(ends[:-1])])
+    keep = ~ends  # the last step of an episode has no successor
+    if not keep.any():
+        raise RMError(f"{path}: every episode has a single step, so there are no transitions")
+    rows = np.flatnonzero(keep)
+    last = ends[rows + 1]
+    terminated = torch.from_numpy(terminals[rows]).unsqueeze(-1)
+    truncated = torch.from_numpy(last).unsqueeze(-1) & ~terminated
+    td = TensorDict(
+        {
+            "observation": torch.from_numpy(obs[rows]).float(),
+            "action": torch.from_numpy(actions[rows]).float(),
+            "episode": torch.from_numpy(episode[rows]).long(),
+            "next": {
+                "observation": torch.from_numpy(obs[rows + 1]).float(),
+                "reward": torch.from_numpy(rewards[rows]).float().reshape(-1, 1),
+                "terminated": terminated,
+                "truncated": truncated,
+                "done": terminated | truncated,
+            },
+        },
+        batch_size=[rows.size],
+    )
+    _, td["episode"] = torch.unique_consecutive(td["episode"], return_inverse=True)
+    return td

@@ -1,0 +1,113 @@
+"""Load Minari offline datasets into the project's flat, one-row-per-transition TensorDict layout.
+
+TorchRL's ``MinariExperienceReplay`` does the reading (HDF5 episodes -> TED layout with ``next``
+entries and nested TensorDicts for dict observations); this module only points it at a throwaway
+``root`` so no memmapped copy is left behind, and normalises dtypes and shapes so every data source
+in the project looks the same downstream.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from unittest import mock
+
+import minari
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data.datasets import MinariExperienceReplay
+
+from rm_torchrl.errors import RMError
+
+_BOOKKEEPING = ("index", "_weight", "done", "terminated", "truncated")
+
+
+def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
+    """Return a Minari dataset as an in-memory TensorDict with batch size [N], one row per transition.
+
+    Keys: ``observation`` (tensor, or nested TensorDict for dict spaces), ``action``,
+    ``("next", "observation")``, ``("next", "reward")`` float32 (N, 1), ``("next", "terminated" |
+    "truncated" | "done")`` bool (N, 1), ``episode`` int64 (N,) in contiguous runs; ``info`` and
+    other tensor entries TorchRL finds are kept. Floating-point data is cast to float32.
+
+    ``download``: ``None`` reads the local Minari cache when the id is there and downloads otherwise,
+    ``False`` never touches the network, ``True`` always downloads (ignoring a local copy).
+    """
+    local = minari.list_local_datasets()
+    use_local = dataset_id in local and download is not True
+    if not use_local and download is False:
+        raise RMError(
+            f"Minari dataset {dataset_id!r} is not in the local cache {_cache_dir()}; "
+            f"local datasets: {_names(local)}"
+        )
+    if use_local:
+        _check_readable(dataset_id, local[dataset_id])
+    with tempfile.TemporaryDirectory() as root, _memmap_like_copies():
+        try:
+            buffer = MinariExperienceReplay(
+                dataset_id, batch_size=1, root=root, download=True, load_from_local_minari=use_local
+            )
+        except Exception as err:
+            if use_local:
+                raise
+            raise RMError(
+                f"could not download Minari dataset {dataset_id!r} ({type(err).__name__}: {err}); "
+                f"datasets in the local cache {_cache_dir()} load offline: {_names(local)}"
+            ) from err
+        data = buffer[:].to_tensordict().clone()
+    return _canonical(data)
+
+
+def _memmap_like_copies():
+    """Make ``memmap_like`` copy content while TorchRL reads.
+
+    TorchRL 0.14's Minari reader fills an in-memory TensorDict and only then calls ``memmap_like``,
+    which writes a content-less copy: every value comes back as zero. ``memmap`` writes the same
+    files with the content; if a later TorchRL preallocates before filling, the swap is harmless.
+    """
+    return mock.patch.object(TensorDict, "memmap_like", TensorDict.memmap)
+
+
+def _check_readable(dataset_id: str, metadata: dict) -> None:
+    """Reject local datasets TorchRL 0.14 cannot read, before it fails with an obscure error."""
+    data_format = metadata.get("data_format", "hdf5")
+    if data_format != "hdf5":
+        raise RMError(
+            f"Minari dataset {dataset_id!r} is stored as {data_format!r}; only 'hdf5' datasets can be loaded"
+        )
+    if int(metadata.get("total_episodes", 0)) < 2:
+        raise RMError(
+            f"Minari dataset {dataset_id!r} has {metadata.get('total_episodes', 0)} episode(s); "
+            "TorchRL's Minari reader needs at least 2"
+        )
+
+
+def _canonical(data: TensorDictBase) -> TensorDict:
+    """Drop replay-buffer bookkeeping and fix dtypes/shapes of the keys the rest of the project reads."""
+    n = data.batch_size[0]
+    data = data.exclude(*_BOOKKEEPING).filter_non_tensor_data()
+    for key in ("observation", "action", ("next", "observation")):
+        data.set(key, _to_float32(data.get(key)))
+    data.set("episode", data.get("episode").reshape(n).to(torch.int64))
+    data.set(("next", "reward"), data.get(("next", "reward")).reshape(n, 1).to(torch.float32))
+    terminated = data.get(("next", "terminated")).reshape(n, 1).to(torch.bool)
+    truncated = data.get(("next", "truncated")).reshape(n, 1).to(torch.bool)
+    data.set(("next", "terminated"), terminated)
+    data.set(("next", "truncated"), truncated)
+    data.set(("next", "done"), terminated | truncated)
+    return data
+
+
+def _to_float32(value):
+    """float32 for floating-point leaves (D4RL stores float64); integer/bool leaves are left as they are."""
+    if isinstance(value, TensorDictBase):
+        return value.apply(_to_float32)
+    return value.to(torch.float32) if value.is_floating_point() else value
+
+
+def _cache_dir() -> str:
+    return os.environ.get("MINARI_DATASETS_PATH") or os.path.expanduser("~/.minari/datasets")
+
+
+def _names(local: dict) -> str:
+    return ", ".join(sorted(local)) or "none"

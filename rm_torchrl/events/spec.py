@@ -1,0 +1,272 @@
+"""The feature detector Phi: a declarative event spec mapping each state to the events that hold.
+
+A spec is a list of events. Each one reads a (nested) key of the observation, selects some
+entries, optionally subtracts a target (a constant vector or another key), optionally reduces
+them to a scalar, and compares that scalar with a threshold::
+
+    events:
+      - {name: handle, key: observation, slice: [35, 38], reduce: norm, op: "<", value: 0.1}
+      - {name: opened, key: observation, index: 28, op: ">", value: 0.2}
+
+Plain Python callables ``f(observation_td) -> bool tensor (...)`` can stand in for any event.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence, Union
+
+import torch
+import yaml
+from tensordict import TensorDictBase
+
+from rm_torchrl.errors import RMError
+
+NestedKey = Union[str, tuple]
+_OPS: dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
+    "<": torch.lt,
+    "<=": torch.le,
+    ">": torch.gt,
+    ">=": torch.ge,
+}
+_REDUCTIONS = {
+    "norm": lambda x: torch.linalg.vector_norm(x, dim=-1),
+    "max": lambda x: x.amax(-1),
+    "min": lambda x: x.amin(-1),
+    "sum": lambda x: x.sum(-1),
+}
+_FIELDS = {"name", "key", "index", "slice", "target", "target_key", "reduce", "op", "value"}
+
+
+def _as_key(key, where: str) -> tuple:
+    if isinstance(key, str):
+        return tuple(key.split("/")) if "/" in key else (key,)
+    if isinstance(key, (list, tuple)) and key and all(isinstance(k, str) for k in key):
+        return tuple(key)
+    raise RMError(f"{where}: 'key' must be a string or a list of strings, got {key!r}")
+
+
+@dataclass(frozen=True)
+class Event:
+    """One thresholded feature of the observation."""
+
+    name: str
+    key: tuple = ("observation",)
+    index: tuple[int, ...] | None = None
+    slice: tuple[int, int] | None = None
+    target: tuple[float, ...] | None = None
+    target_key: tuple | None = None
+    reduce: str | None = None
+    op: str = "<"
+    value: float = 0.0
+
+    @classmethod
+    def from_dict(cls, d: dict, position: int) -> "Event":
+        where = f"event #{position + 1}"
+        if not isinstance(d, dict):
+            raise RMError(f"{where}: expected a mapping with name/key/op/value, got {d!r}")
+        name = d.get("name")
+        if not isinstance(name, str) or not name:
+            raise RMError(f"{where}: every event needs a non-empty string 'name'")
+        where = f"event {name!r}"
+        unknown = set(d) - _FIELDS
+        if unknown:
+            raise RMError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {sorted(_FIELDS)}")
+        for required in ("op", "value"):
+            if required not in d:
+                raise RMError(f"{where}: missing required field {required!r}")
+        op = d["op"]
+        if op not in _OPS:
+            raise RMError(f"{where}: op must be one of {list(_OPS)}, got {op!r}")
+        value = d["value"]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise RMError(f"{where}: 'value' must be a finite number, got {value!r}")
+        if "index" in d and "slice" in d:
+            raise RMError(f"{where}: give either 'index' or 'slice', not both")
+        index = d.get("index")
+        if index is not None:
+            index = (index,) if isinstance(index, int) and not isinstance(index, bool) else index
+            if not (isinstance(index, (list, tuple)) and index and all(
+                isinstance(i, int) and not isinstance(i, bool) for i in index
+            )):
+                raise RMError(f"{where}: 'index' must be an int or a non-empty list of ints, got {index!r}")
+            index = tuple(index)
+        sl = d.get("slice")
+        if sl is not None:
+            if not (isinstance(sl, (list, tuple)) and len(sl) == 2 and all(isinstance(i, int) for i in sl)
+                    and 0 <= sl[0] < sl[1]):
+                raise RMError(f"{where}: 'slice' must be [start, stop] with 0 <= start < stop, got {sl!r}")
+            sl = tuple(sl)
+        if "target" in d and "target_key" in d:
+            raise RMError(f"{where}: give either 'target' or 'target_key', not both")
+        target = d.get("target")
+        if target is not None:
+            target = [target] if isinstance(target, (int, float)) else target
+            if not (isinstance(target, (list, tuple)) and all(
+                isinstance(t, (int, float)) and math.isfinite(t) for t in target
+            )):
+                raise RMError(f"{where}: 'target' must be a number or a list of finite numbers")
+            target = tuple(float(t) for t in target)
+        reduce = d.get("reduce")
+        if reduce is not None and reduce not in _REDUCTIONS:
+            raise RMError(f"{where}: reduce must be one of {list(_REDUCTIONS)}, got {reduce!r}")
+        return cls(
+            name=name,
+            key=_as_key(d.get("key", "observation"), where),
+            index=index,
+            slice=sl,
+            target=target,
+            target_key=_as_key(d["target_key"], where) if "target_key" in d else None,
+            reduce=reduce,
+            op=op,
+            value=float(value),
+        )
+
+    def _select(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim == 0:
+            x = x.unsqueeze(-1)
+        dim = x.shape[-1]
+        if self.slice is not None:
+            if self.slice[1] > dim:
+                raise RMError(f"event {self.name!r}: slice {list(self.slice)} exceeds the last dimension {dim} of {self.key}")
+            return x[..., self.slice[0]: self.slice[1]]
+        if self.index is not None:
+            if max(self.index) >= dim or min(self.index) < -dim:
+                raise RMError(f"event {self.name!r}: index {list(self.index)} is out of range for the last dimension {dim} of {self.key}")
+            if len(self.index) == 1:
+                return x[..., self.index[0]: self.index[0] + 1] if self.index[0] >= 0 else x[..., [self.index[0]]]
+            return x[..., list(self.index)]
+        return x
+
+    def feature(self, obs: TensorDictBase) -> torch.Tensor:
+        """The scalar this event thresholds, shape ``obs.batch_size``."""
+        x = self._select(_get(obs, self.key, self.name)).float()
+        if self.target is not None:
+            if len(self.target) not in (1, x.shape[-1]):
+                raise RMError(f"event {self.name!r}: target has {len(self.target)} entries but the selection has {x.shape[-1]}")
+            x = x - torch.tensor(self.target, dtype=x.dtype, device=x.device)
+        elif self.target_key is not None:
+            t = self._select(_get(obs, self.target_key, self.name)).float()
+            if t.shape != x.shape:
+                raise RMError(f"event {self.name!r}: target_key {self.target_key} has shape {tuple(t.shape)}, the selection {tuple(x.shape)}")
+            x = x - t
+        if self.reduce is not None:
+            x = _REDUCTIONS[self.reduce](x)
+        elif x.shape[-1] != 1:
+            raise RMError(f"event {self.name!r} selects {x.shape[-1]} entries: add 'reduce' (one of {list(_REDUCTIONS)}) or select one")
+        else:
+            x = x.squeeze(-1)
+        if not torch.isfinite(x).all():
+            bad = (~torch.isfinite(x)).nonzero()[:5].tolist()
+            raise RMError(f"event {self.name!r}: non-finite values (NaN or inf) in {'/'.join(self.key)} at rows {bad}")
+        return x
+
+    def __call__(self, obs: TensorDictBase) -> torch.Tensor:
+        return _OPS[self.op](self.feature(obs), self.value)
+
+
+def _get(obs: TensorDictBase, key: tuple, event: str) -> torch.Tensor:
+    try:
+        x = obs.get(key if len(key) > 1 else key[0])
+    except KeyError:
+        x = None
+    if x is None or isinstance(x, TensorDictBase):
+        available = sorted(str(k) for k in obs.keys(include_nested=True, leaves_only=True))
+        raise RMError(f"event {event!r} reads key {'/'.join(key)!r}, which the data does not have; available: {available}")
+    return x
+
+
+@dataclass
+class EventSpec:
+    """Phi: ``spec(td)`` gives a bool tensor ``(*td.batch_size, n)`` of the events that hold."""
+
+    events: list = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+    source: str = "<python>"
+
+    def __post_init__(self):
+        if not self.events:
+            raise RMError(f"event spec {self.source}: it declares no events")
+        if not self.names:
+            self.names = [getattr(e, "name", None) or getattr(e, "__name__", f"e{i + 1}") for i, e in enumerate(self.events)]
+        if len(self.names) != len(self.events):
+            raise RMError("event spec: one name per event is needed")
+        dup = sorted({n for n in self.names if self.names.count(n) > 1})
+        if dup:
+            raise RMError(f"event spec {self.source}: duplicate event names {dup}")
+        if "e0" in self.names:
+            raise RMError(f"event spec {self.source}: 'e0' is reserved for the initial RM state")
+
+    @property
+    def n(self) -> int:
+        return len(self.events)
+
+    @property
+    def keys(self) -> list[tuple]:
+        """Observation keys read by the declarative events (callables read what they like)."""
+        out = []
+        for e in self.events:
+            for k in (getattr(e, "key", None), getattr(e, "target_key", None)):
+                if k is not None and k not in out:
+                    out.append(k)
+        return out
+
+    def __call__(self, obs: TensorDictBase) -> torch.Tensor:
+        cols = []
+        for name, ev in zip(self.names, self.events):
+            out = ev(obs)
+            if not isinstance(out, torch.Tensor) or out.shape != obs.batch_size:
+                shape = getattr(out, "shape", type(out).__name__)
+                raise RMError(f"event {name!r} returned {shape}; expected a tensor of shape {tuple(obs.batch_size)}")
+            cols.append(out.bool())
+        return torch.stack(cols, -1)
+
+    @classmethod
+    def from_dict(cls, data, source: str = "<dict>") -> "EventSpec":
+        if isinstance(data, list):
+            data = {"events": data}
+        if not isinstance(data, dict) or "events" not in data:
+            raise RMError(f"event spec {source}: expected a mapping with an 'events' list")
+        unknown = set(data) - {"events", "description"}
+        if unknown:
+            raise RMError(f"event spec {source}: unknown top-level key(s) {sorted(unknown)}; allowed: events, description")
+        if not isinstance(data["events"], list):
+            raise RMError(f"event spec {source}: 'events' must be a list")
+        return cls([Event.from_dict(d, i) for i, d in enumerate(data["events"])], source=source)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "EventSpec":
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as err:
+            raise RMError(f"cannot read event spec {path}: {err.strerror}") from None
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise RMError(f"event spec {path} is not valid YAML: {err}") from None
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_callables(cls, fns: Sequence[Callable], names: Sequence[str] | None = None) -> "EventSpec":
+        return cls(list(fns), list(names) if names else [])
+
+
+def builtin_specs() -> list[str]:
+    return sorted(p.stem for p in (Path(__file__).parent / "specs").glob("*.yaml"))
+
+
+def load_event_spec(name_or_path: str | Path | EventSpec) -> EventSpec:
+    """A built-in spec by name (``door``, ``relocate``, ``kitchen``, ``kitchen-v0``) or a YAML path."""
+    if isinstance(name_or_path, EventSpec):
+        return name_or_path
+    builtin = Path(__file__).parent / "specs" / f"{name_or_path}.yaml"
+    if builtin.is_file():
+        return EventSpec.from_yaml(builtin)
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        if not path.is_file():
+            raise RMError(f"event spec file {path} does not exist")
+        return EventSpec.from_yaml(path)
+    raise RMError(f"unknown event spec {str(name_or_path)!r}: use a YAML file or one of {builtin_specs()}")

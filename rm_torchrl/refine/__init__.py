@@ -1,0 +1,22 @@
+"""Dataset refinement stages (paper sections 3.2-3.4) as composable TorchRL transforms."""
+from rm_torchrl.refine.label import LabelRM
+from rm_torchrl.refine.order import EventOrder, best_event_order
+from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, refine, refine_replay_buffer
+from rm_torchrl.refine.relabel import CounterfactualRelabel
+from rm_torchrl.refine.shortest import KeepShortest
+from rm_torchrl.refine.splice import Splice
+from rm_torchrl.refine.split import SplitGroup
+
+__all__ = [
+    "LabelRM",
+    "SplitGroup",
+    "EventOrder",
+    "Splice",
+    "KeepShortest",
+    "CounterfactualRelabel",
+    "best_event_order",
+    "make_refine_pipeline",
+    "refine",
+    "refine_replay_buffer",
+    "RefineReport",
+]

@@ -1,0 +1,67 @@
+"""Common ground of the refinement stages: dataset-level TorchRL transforms."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.transforms import Transform
+
+from rm_torchrl.errors import RMError
+
+
+class DatasetTransform(Transform):
+    """A transform over a whole flat dataset of transitions (batch ``[N]``), not over env steps.
+
+    Refinement needs every transition at once (groups, orders, lengths), so these transforms run in
+    ``forward`` - as ``Compose`` and replay-buffer sampling call them - and may drop rows. After a
+    call, ``stats`` holds what the stage kept, for reports.
+    """
+
+    def __init__(self, in_keys, out_keys):
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
+        self.stats: dict = {}
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.batch_dims != 1:
+            raise RMError(
+                f"{type(self).__name__} works on a flat dataset of transitions (batch_size [N]), "
+                f"got batch_size {list(tensordict.batch_size)}; flatten it with td.reshape(-1) first"
+            )
+        if tensordict.numel() == 0:
+            raise RMError(f"{type(self).__name__}: the dataset is empty")
+        missing = [k for k in self.in_keys if k not in tensordict.keys(include_nested=True)]
+        if missing:
+            raise RMError(
+                f"{type(self).__name__} needs key(s) {missing}, which the data does not have; "
+                "run the earlier refinement stages first (see make_refine_pipeline)"
+            )
+        rows_in = tensordict.numel()
+        out = self._refine(tensordict)
+        self.stats = {"rows_in": rows_in, "rows_out": out.numel(), **self._extra_stats()}
+        return out
+
+    def _refine(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise NotImplementedError
+
+    def _extra_stats(self) -> dict:
+        return {}
+
+    def _call(self, *args, **kwargs):
+        raise RMError(
+            f"{type(self).__name__} refines a whole offline dataset and cannot run inside an "
+            "environment; use RMEnvTransform to track the RM state online"
+        )
+
+    _reset = _call
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._repr_args()})"
+
+    def _repr_args(self) -> str:
+        return ""
+
+
+def select_rows(td: TensorDictBase, keep: torch.Tensor) -> TensorDictBase:
+    """Rows where ``keep`` holds; no copy when every row is kept."""
+    if bool(keep.all()):
+        return td
+    return td[keep.nonzero().squeeze(-1)]

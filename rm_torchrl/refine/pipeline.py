@@ -1,0 +1,134 @@
+"""The whole refinement as one ``Compose``, its report, and its use on replay buffers."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable
+
+from tensordict import TensorDictBase
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs.transforms import Compose
+
+from rm_torchrl.errors import RMError
+from rm_torchrl.events.spec import EventSpec, load_event_spec
+from rm_torchrl.refine.label import LabelRM
+from rm_torchrl.refine.order import EventOrder
+from rm_torchrl.refine.relabel import CounterfactualRelabel
+from rm_torchrl.refine.shortest import KeepShortest
+from rm_torchrl.refine.splice import Splice
+from rm_torchrl.refine.split import SplitGroup
+
+#: Stage names of the paper's Table 2, keyed by the stage whose output they count.
+TABLE2_ROWS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events", "shorter": "Shorter Traj."}
+
+
+def make_refine_pipeline(
+    events: EventSpec | str, alpha: float = 1.0, constraints: Iterable = (), episode_key: str = "episode"
+) -> Compose:
+    """label -> split/group -> order -> splice -> keep shortest -> counterfactual relabel."""
+    spec = load_event_spec(events)
+    return Compose(
+        LabelRM(spec, episode_key=episode_key),
+        SplitGroup(episode_key=episode_key),
+        EventOrder(spec.names, constraints),
+        Splice(),
+        KeepShortest(alpha),
+        CounterfactualRelabel(episode_key=episode_key),
+    )
+
+
+@dataclass
+class RefineReport:
+    """What each stage kept: the paper's Table 2 row plus the chosen order and its groups."""
+
+    stages: dict[str, int]
+    order: list[str]
+    order_score: int
+    groups: dict[str, int]
+    events: list[str]
+    alpha: float
+    episodes: int = 0
+    episodes_reaching: dict[str, int] = field(default_factory=dict)
+    subtrajectories: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_pipeline(cls, pipeline: Compose) -> "RefineReport":
+        label, split, order, splice, shortest, relabel = _stages(pipeline)
+        return cls(
+            stages={
+                "original": label.stats["rows_in"],
+                "split": split.stats["rows_out"],
+                "ordered": splice.stats["rows_out"],
+                "shorter": shortest.stats["rows_out"],
+            },
+            order=order.stats["order"],
+            order_score=order.stats["order_score"],
+            groups=order.stats["groups"],
+            events=list(label.spec.names),
+            alpha=float(shortest.alpha),
+            episodes=label.stats["episodes"],
+            episodes_reaching=label.stats["episodes_reaching"],
+            subtrajectories={"split": split.stats["subtrajectories"], "refined": _count_episodes(relabel)},
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "stages": self.stages,
+            "order": self.order,
+            "order_score": self.order_score,
+            "groups": self.groups,
+            "events": self.events,
+            "alpha": self.alpha,
+            "episodes": self.episodes,
+            "episodes_reaching": self.episodes_reaching,
+            "subtrajectories": self.subtrajectories,
+        }
+
+    def table(self) -> str:
+        """The stage sizes as a plain-text table in the layout of the paper's Table 2."""
+        width = max(len(v) for v in TABLE2_ROWS.values())
+        original = self.stages["original"]
+        lines = [f"{'Procedure':<{width}}  {'transitions':>12}  {'kept':>7}"]
+        for key, label in TABLE2_ROWS.items():
+            count = self.stages[key]
+            lines.append(f"{label:<{width}}  {count:>12,}  {count / original:>7.1%}")
+        lines.append(f"best order: {' -> '.join(self.order)} (score {self.order_score:,})")
+        groups = ", ".join(f"{k}: {v}" for k, v in self.groups.items())
+        lines.append(f"groups (sub-trajectories): {groups}")
+        return "\n".join(lines)
+
+
+def _stages(pipeline: Compose):
+    found = {type(t): t for t in pipeline.transforms}
+    wanted = (LabelRM, SplitGroup, EventOrder, Splice, KeepShortest, CounterfactualRelabel)
+    missing = [w.__name__ for w in wanted if w not in found]
+    if missing:
+        raise RMError(f"a report needs every refinement stage; the pipeline lacks {missing}")
+    return [found[w] for w in wanted]
+
+
+def _count_episodes(relabel: CounterfactualRelabel) -> int:
+    return relabel.stats.get("episodes", 0)
+
+
+def refine(data: TensorDictBase, events: EventSpec | str, alpha: float = 1.0, constraints: Iterable = ()):
+    """Refine a flat dataset of transitions; returns ``(refined, report)``. ``data`` is not modified."""
+    pipeline = make_refine_pipeline(events, alpha, constraints)
+    refined = pipeline(data.copy())
+    return refined, RefineReport.from_pipeline(pipeline)
+
+
+def refine_replay_buffer(
+    buffer: TensorDictReplayBuffer, pipeline: Compose, scratch_dir: str | None = None, **buffer_kwargs
+) -> TensorDictReplayBuffer:
+    """A new buffer holding the refined content of ``buffer`` (memory-mapped under ``scratch_dir`` if given)."""
+    if len(buffer) == 0:
+        raise RMError("the replay buffer is empty: there is nothing to refine")
+    data = buffer.storage[: len(buffer)]
+    refined = pipeline(data.copy())
+    if scratch_dir is None:
+        storage = LazyTensorStorage(refined.numel())
+    else:
+        storage = LazyMemmapStorage(refined.numel(), scratch_dir=scratch_dir)
+    out = TensorDictReplayBuffer(storage=storage, **buffer_kwargs)
+    out.extend(refined)
+    return out

@@ -1,0 +1,55 @@
+"""Vectorised bookkeeping for contiguous runs of rows (episodes, sub-trajectories)."""
+from __future__ import annotations
+
+import torch
+
+from rm_torchrl.errors import RMError
+
+
+def run_starts(ids: torch.Tensor) -> torch.Tensor:
+    """True where a new run of equal ids begins."""
+    starts = torch.ones_like(ids, dtype=torch.bool)
+    starts[1:] = ids[1:] != ids[:-1]
+    return starts
+
+
+def run_ends(starts: torch.Tensor) -> torch.Tensor:
+    """True on the last row of each run, given the run starts."""
+    ends = torch.ones_like(starts)
+    ends[:-1] = starts[1:]
+    return ends
+
+
+def episode_runs(episode: torch.Tensor) -> torch.Tensor:
+    """Run starts of an episode column, checking that each episode is stored as one run."""
+    if episode.ndim != 1:
+        raise RMError(f"the 'episode' column must be 1-D (one id per transition), got shape {tuple(episode.shape)}")
+    if episode.dtype.is_floating_point or episode.dtype == torch.bool:
+        raise RMError(f"the 'episode' column must hold integer ids, got {episode.dtype}")
+    starts = run_starts(episode)
+    n_runs = int(starts.sum())
+    if n_runs != episode.unique().numel():
+        raise RMError(
+            "each episode must be stored as one contiguous run of transitions in time order; "
+            f"found {n_runs} runs for {episode.unique().numel()} episode ids"
+        )
+    return starts
+
+
+def run_index(starts: torch.Tensor) -> torch.Tensor:
+    """Dense run id (0, 1, ...) of every row."""
+    return starts.long().cumsum(0) - 1
+
+
+def position_in_run(starts: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
+    """0-based position of every row inside its run."""
+    first = starts.nonzero().squeeze(-1)
+    return torch.arange(starts.numel(), device=starts.device) - first[run]
+
+
+def shift_down(x: torch.Tensor, fill) -> torch.Tensor:
+    """x[i-1] at row i (``fill`` at row 0)."""
+    out = torch.empty_like(x)
+    out[:1] = fill
+    out[1:] = x[:-1]
+    return out
