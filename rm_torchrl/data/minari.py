@@ -8,8 +8,10 @@ in the project looks the same downstream.
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
+from contextlib import contextmanager
 from unittest import mock
 
 import minari
@@ -42,7 +44,7 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
         )
     if use_local:
         _check_readable(dataset_id, local[dataset_id])
-    with tempfile.TemporaryDirectory() as root, _memmap_like_copies():
+    with tempfile.TemporaryDirectory() as root, _fixed_quiet_reader():
         try:
             buffer = MinariExperienceReplay(
                 dataset_id, batch_size=1, root=root, download=True, load_from_local_minari=use_local
@@ -54,18 +56,27 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
                 f"could not download Minari dataset {dataset_id!r} ({type(err).__name__}: {err}); "
                 f"datasets in the local cache {_cache_dir()} load offline: {_names(local)}"
             ) from err
-        data = buffer[:].to_tensordict().clone()
+        data = buffer[:].to_tensordict()
     return _canonical(data)
 
 
-def _memmap_like_copies():
-    """Make ``memmap_like`` copy content while TorchRL reads.
+@contextmanager
+def _fixed_quiet_reader():
+    """Make ``memmap_like`` copy content and mute TorchRL's INFO logs while TorchRL reads.
 
     TorchRL 0.14's Minari reader fills an in-memory TensorDict and only then calls ``memmap_like``,
     which writes a content-less copy: every value comes back as zero. ``memmap`` writes the same
     files with the content; if a later TorchRL preallocates before filling, the swap is harmless.
+    The reader also logs the whole TensorDict structure to stdout, which would pollute CLI output.
     """
-    return mock.patch.object(TensorDict, "memmap_like", TensorDict.memmap)
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    logger.setLevel(max(level, logging.WARNING))
+    try:
+        with mock.patch.object(TensorDict, "memmap_like", TensorDict.memmap):
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 def _check_readable(dataset_id: str, metadata: dict) -> None:

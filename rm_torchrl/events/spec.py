@@ -157,13 +157,18 @@ class Event:
             raise RMError(f"event {self.name!r} selects {x.shape[-1]} entries: add 'reduce' (one of {list(_REDUCTIONS)}) or select one")
         else:
             x = x.squeeze(-1)
-        if not torch.isfinite(x).all():
+        if not torch.isfinite(x.sum()) and not torch.isfinite(x).all():
             bad = (~torch.isfinite(x)).nonzero()[:5].tolist()
             raise RMError(f"event {self.name!r}: non-finite values (NaN or inf) in {'/'.join(self.key)} at rows {bad}")
         return x
 
-    def __call__(self, obs: TensorDictBase) -> torch.Tensor:
-        return _OPS[self.op](self.feature(obs), self.value)
+    @property
+    def feature_id(self) -> tuple:
+        """Events with equal ids threshold the same scalar, which is then computed once."""
+        return (self.key, self.index, self.slice, self.target, self.target_key, self.reduce)
+
+    def __call__(self, obs: TensorDictBase, feature: torch.Tensor | None = None) -> torch.Tensor:
+        return _OPS[self.op](self.feature(obs) if feature is None else feature, self.value)
 
 
 def _get(obs: TensorDictBase, key: tuple, event: str) -> torch.Tensor:
@@ -213,9 +218,15 @@ class EventSpec:
         return out
 
     def __call__(self, obs: TensorDictBase) -> torch.Tensor:
-        cols = []
+        cols, features = [], {}
         for name, ev in zip(self.names, self.events):
-            out = ev(obs)
+            if isinstance(ev, Event):
+                fid = ev.feature_id
+                if fid not in features:
+                    features[fid] = ev.feature(obs)
+                out = ev(obs, features[fid])
+            else:
+                out = ev(obs)
             if not isinstance(out, torch.Tensor) or out.shape != obs.batch_size:
                 shape = getattr(out, "shape", type(out).__name__)
                 raise RMError(f"event {name!r} returned {shape}; expected a tensor of shape {tuple(obs.batch_size)}")

@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.base import DatasetTransform
-from rm_torchrl.refine.segments import episode_runs, position_in_run, run_index
+from rm_torchrl.refine.segments import episode_runs, run_index
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
@@ -35,22 +35,32 @@ class LabelRM(DatasetTransform):
             raise RMError("LabelRM needs the next observations under ('next', ...) in the dataset")
         fired = self.spec(td.get("next")) & ~self.spec(td)
         run = run_index(starts)
-        step = position_in_run(starts, run)
-        n, n_runs = self.rm.n, int(run[-1]) + 1
+        start_rows = starts.nonzero().squeeze(-1)
+        n, n_runs = self.rm.n, start_rows.numel()
         never = torch.iinfo(torch.long).max
-        first = torch.full((n_runs, n), never, dtype=torch.long)
-        first.scatter_reduce_(
-            0, run.unsqueeze(-1).expand(-1, n), torch.where(fired, step.unsqueeze(-1), never), "amin"
-        )
+        first = torch.full((n_runs * n,), never, dtype=torch.long)
+        row, event = fired.nonzero(as_tuple=True)
+        step = row - start_rows[run[row]]
+        first.scatter_reduce_(0, run[row] * n + event, step, "amin")
+        first = first.view(n_runs, n)
+        # The state only changes where an event first fires: label those rows and the episode
+        # starts, then carry each label forward to the rows that follow it.
+        points = starts.clone()
+        points[(start_rows.unsqueeze(-1) + first)[first < never]] = True
+        point_rows = points.nonzero().squeeze(-1)
+        point_run = run[point_rows]
+        point_step = (point_rows - start_rows[point_run]).unsqueeze(-1)
         ids = torch.arange(n)
         before = (first.unsqueeze(-1) < first.unsqueeze(-2)) | (
             (first.unsqueeze(-1) == first.unsqueeze(-2)) & (ids.unsqueeze(-1) < ids)
         )
-        slot = before.sum(-2)[run]
-        first_row = first[run]
-        step = step.unsqueeze(-1)
-        state = torch.zeros_like(slot).scatter_(1, slot, torch.where(first_row < step, ids + 1, 0))
-        next_state = torch.zeros_like(slot).scatter_(1, slot, torch.where(first_row <= step, ids + 1, 0))
+        slot = before.sum(-2)[point_run]
+        fired_by = torch.where(first[point_run] <= point_step, ids + 1, 0)
+        table = torch.zeros_like(slot).scatter_(1, slot, fired_by)
+        next_state = table[points.long().cumsum(0) - 1]
+        state = torch.empty_like(next_state)
+        state[1:] = next_state[:-1]
+        state[start_rows] = 0
         td.set(self.out_keys[0], state)
         td.set(self.out_keys[1], next_state)
         self._episodes_reaching = (first < never).sum(0).tolist()

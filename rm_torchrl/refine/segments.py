@@ -27,11 +27,12 @@ def episode_runs(episode: torch.Tensor) -> torch.Tensor:
     if episode.dtype.is_floating_point or episode.dtype == torch.bool:
         raise RMError(f"the 'episode' column must hold integer ids, got {episode.dtype}")
     starts = run_starts(episode)
-    n_runs = int(starts.sum())
-    if n_runs != episode.unique().numel():
+    run_ids = episode[starts]
+    n_ids = run_ids.unique().numel()
+    if n_ids != run_ids.numel():
         raise RMError(
             "each episode must be stored as one contiguous run of transitions in time order; "
-            f"found {n_runs} runs for {episode.unique().numel()} episode ids"
+            f"found {run_ids.numel()} runs for {n_ids} episode ids"
         )
     return starts
 

@@ -1,0 +1,208 @@
+"""load_minari on tiny Minari datasets written to a temporary local cache, so no network is needed.
+
+Datasets are written with ``minari.create_dataset_from_buffers`` (the same on-disk format as
+``minari.DataCollector``, which additionally needs jax, an extra this project does not install).
+Observations encode (episode, step) so that an all-zero or shifted read cannot pass.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium as gym
+import minari
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from minari.data_collector import EpisodeBuffer
+
+from rm_torchrl.data.minari import load_minari
+from rm_torchrl.errors import RMError
+
+SCHEDULE = [(5, "terminated"), (8, "truncated"), (3, "terminated")]
+TOTAL_STEPS = sum(length for length, _ in SCHEDULE)
+
+
+def _box(n):
+    return spaces.Box(-1e6, 1e6, (n,), np.float32)
+
+
+class TinyEnv(gym.Env):
+    """Episode lengths and end kinds follow ``schedule``; observation = [100 * episode + t, t]."""
+
+    def __init__(self, schedule, dict_obs=False):
+        self.schedule, self.dict_obs, self.episode, self.t = schedule, dict_obs, -1, 0
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        if dict_obs:
+            goal = spaces.Dict({"microwave": _box(1), "kettle": _box(3)})
+            self.observation_space = spaces.Dict(
+                {"observation": _box(2), "achieved_goal": goal, "desired_goal": goal}
+            )
+        else:
+            self.observation_space = _box(2)
+
+    def _obs(self):
+        flat = np.array([100 * self.episode + self.t, self.t], np.float32)
+        if not self.dict_obs:
+            return flat
+        return {
+            "observation": flat,
+            "achieved_goal": {"microwave": flat[:1].copy(), "kettle": np.full(3, self.t, np.float32)},
+            "desired_goal": {"microwave": np.ones(1, np.float32), "kettle": np.zeros(3, np.float32)},
+        }
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.episode, self.t = self.episode + 1, 0
+        return self._obs(), {"success": False}
+
+    def step(self, action):
+        self.t += 1
+        length, kind = self.schedule[self.episode]
+        end = self.t >= length
+        info = {"success": end}
+        return self._obs(), float(self.t), end and kind == "terminated", end and kind == "truncated", info
+
+
+def _stack(items):
+    if isinstance(items[0], dict):
+        return {key: _stack([item[key] for item in items]) for key in items[0]}
+    return np.stack(items)
+
+
+def _write_dataset(dataset_id, schedule=SCHEDULE, dict_obs=False):
+    """Roll TinyEnv out with random actions, write it to the local Minari cache, return the actions."""
+    env = TinyEnv(schedule, dict_obs)
+    env.action_space.seed(0)
+    buffers, all_actions = [], []
+    for episode in range(len(schedule)):
+        obs, info = env.reset(seed=episode)
+        steps = {"obs": [obs], "infos": [info], "actions": [], "rewards": [], "term": [], "trunc": []}
+        done = False
+        while not done:
+            action = env.action_space.sample()
+            obs, reward, terminated, truncated, info = env.step(action)
+            for key, value in zip(
+                ("obs", "actions", "rewards", "term", "trunc", "infos"),
+                (obs, action, reward, terminated, truncated, info),
+            ):
+                steps[key].append(value)
+            done = terminated or truncated
+        all_actions.extend(steps["actions"])
+        buffers.append(
+            EpisodeBuffer(
+                id=episode,
+                observations=_stack(steps["obs"]),
+                actions=np.stack(steps["actions"]),
+                rewards=steps["rewards"],
+                terminations=steps["term"],
+                truncations=steps["trunc"],
+                infos=_stack(steps["infos"]),
+            )
+        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        minari.create_dataset_from_buffers(dataset_id, buffers, env=env, algorithm_name="random")
+    return torch.as_tensor(np.stack(all_actions))
+
+
+@pytest.fixture
+def minari_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+    return tmp_path / "minari"
+
+
+def _expected_episode_ids():
+    return torch.cat([torch.full((length,), i) for i, (length, _) in enumerate(SCHEDULE)])
+
+
+def _expected_step_index():
+    return torch.cat([torch.arange(length) for length, _ in SCHEDULE])
+
+
+def _assert_next_is_following_observation(data, obs_key):
+    same_episode = data["episode"][1:] == data["episode"][:-1]
+    following = data["observation", *obs_key][1:][same_episode]
+    torch.testing.assert_close(data["next", "observation", *obs_key][:-1][same_episode], following)
+
+
+def test_flat_observation_layout(minari_cache):
+    actions = _write_dataset("tiny/flat-v0")
+    data = load_minari("tiny/flat-v0")
+
+    assert data.batch_size == (TOTAL_STEPS,)
+    assert not {"index", "_weight", "done", "terminated", "truncated"} & set(data.keys())
+    assert data["episode"].dtype == torch.int64 and data["episode"].shape == (TOTAL_STEPS,)
+    assert torch.equal(data["episode"], _expected_episode_ids())
+    assert torch.equal(torch.unique_consecutive(data["episode"]), torch.unique(data["episode"]))
+
+    step = _expected_step_index().float()
+    expected_obs = torch.stack([100 * data["episode"].float() + step, step], -1)
+    assert data["observation"].dtype == torch.float32
+    torch.testing.assert_close(data["observation"], expected_obs)
+    torch.testing.assert_close(data["next", "observation"][:, 1], step + 1)
+    _assert_next_is_following_observation(data, ())
+    torch.testing.assert_close(data["action"], actions)
+    assert data["action"].dtype == torch.float32
+
+    reward = data["next", "reward"]
+    assert reward.dtype == torch.float32 and reward.shape == (TOTAL_STEPS, 1)
+    torch.testing.assert_close(reward, (step + 1).unsqueeze(-1))
+    for key in ("terminated", "truncated", "done"):
+        flag = data["next", key]
+        assert flag.dtype == torch.bool and flag.shape == (TOTAL_STEPS, 1), key
+    ends = torch.tensor([4, 12, 15])
+    assert torch.equal(data["next", "done"].squeeze(-1).nonzero().squeeze(-1), ends)
+    assert data["next", "terminated"].squeeze(-1)[ends].tolist() == [True, False, True]
+    assert data["next", "truncated"].squeeze(-1)[ends].tolist() == [False, True, False]
+    assert torch.equal(data["next", "done"], data["next", "terminated"] | data["next", "truncated"])
+
+
+def test_dict_observation_is_nested(minari_cache):
+    _write_dataset("tiny/kitchen-v0", dict_obs=True)
+    data = load_minari("tiny/kitchen-v0", download=False)
+
+    assert data.batch_size == (TOTAL_STEPS,)
+    leaves = {
+        ("observation",): 2,
+        ("achieved_goal", "microwave"): 1,
+        ("achieved_goal", "kettle"): 3,
+        ("desired_goal", "microwave"): 1,
+        ("desired_goal", "kettle"): 3,
+    }
+    for key, width in leaves.items():
+        for prefix in (("observation",), ("next", "observation")):
+            value = data[(*prefix, *key)]
+            assert value.dtype == torch.float32 and value.shape == (TOTAL_STEPS, width), (prefix, key)
+        _assert_next_is_following_observation(data, key)
+    step = _expected_step_index().float()
+    torch.testing.assert_close(data["observation", "achieved_goal", "kettle"][:, 0], step)
+    torch.testing.assert_close(
+        data["observation", "achieved_goal", "microwave"].squeeze(-1), 100 * data["episode"].float() + step
+    )
+    assert torch.equal(data["episode"], _expected_episode_ids())
+
+
+def test_unknown_local_name_lists_local_datasets(minari_cache):
+    _write_dataset("tiny/flat-v0")
+    with pytest.raises(RMError, match=r"'tiny/flat-v1' is not in the local cache.*tiny/flat-v0"):
+        load_minari("tiny/flat-v1", download=False)
+
+
+@pytest.mark.parametrize("dataset_id, download", [("D4RL/door/human-v2", None), ("tiny/flat-v0", True)])
+def test_failed_download_is_an_rm_error(minari_cache, monkeypatch, dataset_id, download):
+    _write_dataset("tiny/flat-v0")
+
+    def offline(*args, **kwargs):
+        raise ConnectionError("network is unreachable")
+
+    monkeypatch.setattr(minari, "download_dataset", offline)
+    with pytest.raises(RMError, match=r"could not download.*network is unreachable.*load offline: tiny/flat-v0"):
+        load_minari(dataset_id, download=download)
+
+
+def test_single_episode_dataset_is_an_rm_error(minari_cache):
+    _write_dataset("tiny/one-v0", schedule=[(4, "terminated")])
+    with pytest.raises(RMError, match="at least 2"):
+        load_minari("tiny/one-v0")
