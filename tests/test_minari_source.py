@@ -1,8 +1,8 @@
 """load_minari on tiny Minari datasets written to a temporary local cache, so no network is needed.
 
-Datasets are written with ``minari.create_dataset_from_buffers`` (the same on-disk format as
-``minari.DataCollector``, which additionally needs jax, an extra this project does not install).
-Observations encode (episode, step) so that an all-zero or shifted read cannot pass.
+Datasets are recorded by wrapping a tiny custom gymnasium env in ``minari.DataCollector`` and calling
+``create_dataset`` with ``MINARI_DATASETS_PATH`` pointing under ``tmp_path``. Observations and actions
+encode (episode, step) so that an all-zero, shifted or reordered read cannot pass.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
-from minari.data_collector import EpisodeBuffer
 
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
@@ -65,45 +64,46 @@ class TinyEnv(gym.Env):
         return self._obs(), float(self.t), end and kind == "terminated", end and kind == "truncated", info
 
 
-def _stack(items):
-    if isinstance(items[0], dict):
-        return {key: _stack([item[key] for item in items]) for key in items[0]}
-    return np.stack(items)
+def _action(episode, t):
+    """Deterministic action for step ``t`` (0-based) of ``episode``; inside the [-1, 1] action box."""
+    return np.array([t / 10, -episode / 10], np.float32)
 
 
 def _write_dataset(dataset_id, schedule=SCHEDULE, dict_obs=False):
-    """Roll TinyEnv out with random actions, write it to the local Minari cache, return the actions."""
-    env = TinyEnv(schedule, dict_obs)
-    env.action_space.seed(0)
-    buffers, all_actions = [], []
-    for episode in range(len(schedule)):
-        obs, info = env.reset(seed=episode)
-        steps = {"obs": [obs], "infos": [info], "actions": [], "rewards": [], "term": [], "trunc": []}
-        done = False
-        while not done:
-            action = env.action_space.sample()
-            obs, reward, terminated, truncated, info = env.step(action)
-            for key, value in zip(
-                ("obs", "actions", "rewards", "term", "trunc", "infos"),
-                (obs, action, reward, terminated, truncated, info),
-            ):
-                steps[key].append(value)
-            done = terminated or truncated
-        all_actions.extend(steps["actions"])
-        buffers.append(
-            EpisodeBuffer(
-                id=episode,
-                observations=_stack(steps["obs"]),
-                actions=np.stack(steps["actions"]),
-                rewards=steps["rewards"],
-                terminations=steps["term"],
-                truncations=steps["trunc"],
-                infos=_stack(steps["infos"]),
+    """Record TinyEnv through ``minari.DataCollector`` into the local Minari cache; return the actions.
+
+    The collector stores each T-step episode as T + 1 observations (the reset observation included)
+    and T actions; ``load_minari`` turns that into T rows of (observation, action, next observation).
+    TinyEnv is instantiated directly (``env.spec`` is None), which minari accepts with a warning, so
+    nothing has to be registered with gymnasium.
+    """
+    collector = minari.DataCollector(TinyEnv(schedule, dict_obs), record_infos=True)
+    all_actions = []
+    try:
+        for episode in range(len(schedule)):
+            collector.reset(seed=episode)
+            t, done = 0, False
+            while not done:
+                action = _action(episode, t)
+                _, _, terminated, truncated, _ = collector.step(action)
+                all_actions.append(action)
+                t, done = t + 1, terminated or truncated
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # code_permalink/author_email/eval_env/env_spec "is None" warnings
+            dataset = collector.create_dataset(
+                dataset_id=dataset_id,
+                algorithm_name="deterministic",
+                author="rm_torchrl tests",
+                description="tiny local test dataset",
             )
-        )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        minari.create_dataset_from_buffers(dataset_id, buffers, env=env, algorithm_name="random")
+    finally:
+        collector.close()
+    assert dataset.total_episodes == len(schedule)
+    assert dataset.total_steps == sum(length for length, _ in schedule)
+    for episode, (length, _) in zip(dataset.iterate_episodes(), schedule):
+        assert len(episode.actions) == length and len(episode.rewards) == length
+        observations = episode.observations["observation"] if dict_obs else episode.observations
+        assert len(observations) == length + 1  # the reset observation is stored too
     return torch.as_tensor(np.stack(all_actions))
 
 
@@ -115,6 +115,12 @@ def minari_cache(tmp_path, monkeypatch):
 
 def _expected_episode_ids():
     return torch.cat([torch.full((length,), i) for i, (length, _) in enumerate(SCHEDULE)])
+
+
+def _expected_actions():
+    return torch.as_tensor(
+        np.stack([_action(episode, t) for episode, (length, _) in enumerate(SCHEDULE) for t in range(length)])
+    )
 
 
 def _expected_step_index():
@@ -144,6 +150,7 @@ def test_flat_observation_layout(minari_cache):
     torch.testing.assert_close(data["next", "observation"][:, 1], step + 1)
     _assert_next_is_following_observation(data, ())
     torch.testing.assert_close(data["action"], actions)
+    torch.testing.assert_close(data["action"], _expected_actions())
     assert data["action"].dtype == torch.float32
 
     reward = data["next", "reward"]

@@ -48,7 +48,7 @@ def event_statistics(td: TensorDictBase, spec: EventSpec | str) -> list[dict]:
         raise RMError(f"event_statistics needs a TensorDict of transitions, got {type(td).__name__}")
     if td.batch_dims != 1:
         raise RMError(f"event_statistics needs flat transitions, got batch_size {list(td.batch_size)}; use td.reshape(-1)")
-    if td.numel() == 0:
+    if td.batch_size[0] == 0:  # not td.numel(): TensorDict.numel() is 1 for an empty batch
         raise RMError("event_statistics: the dataset holds no transitions")
     if "episode" not in td.keys():
         raise RMError("event_statistics needs an 'episode' column (one id per transition)")
@@ -58,7 +58,7 @@ def event_statistics(td: TensorDictBase, spec: EventSpec | str) -> list[dict]:
     starts = episode_runs(td.get("episode"))
     run = run_index(starts)
     step = position_in_run(starts, run)
-    n, n_eps, n_tr = spec.n, int(run[-1]) + 1, td.numel()
+    n, n_eps, n_tr = spec.n, int(run[-1]) + 1, td.batch_size[0]
 
     now, nxt = spec(td), spec(td.get("next"))                          # (N, n) bool
     fired = nxt & ~now

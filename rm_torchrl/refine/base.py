@@ -26,7 +26,7 @@ class DatasetTransform(Transform):
                 f"{type(self).__name__} works on a flat dataset of transitions (batch_size [N]), "
                 f"got batch_size {list(tensordict.batch_size)}; flatten it with td.reshape(-1) first"
             )
-        if tensordict.numel() == 0:
+        if tensordict.batch_size[0] == 0:
             raise RMError(f"{type(self).__name__}: the dataset is empty")
         missing = [k for k in self.in_keys if k not in tensordict.keys(include_nested=True)]
         if missing:
@@ -34,9 +34,9 @@ class DatasetTransform(Transform):
                 f"{type(self).__name__} needs key(s) {missing}, which the data does not have; "
                 "run the earlier refinement stages first (see make_refine_pipeline)"
             )
-        rows_in = tensordict.numel()
+        rows_in = tensordict.batch_size[0]
         out = self._refine(tensordict)
-        self.stats = {"rows_in": rows_in, "rows_out": out.numel(), **self._extra_stats()}
+        self.stats = {"rows_in": rows_in, "rows_out": out.batch_size[0], **self._extra_stats()}
         return out
 
     def _refine(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -1,0 +1,1 @@
+"""The ``rmrl`` command line."""
