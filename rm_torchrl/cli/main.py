@@ -15,13 +15,13 @@ def _constraint(text: str) -> tuple[str, str]:
     return before.strip(), after.strip()
 
 
-def _add_source(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dataset", required=True, metavar="SRC",
+def _add_source(p: argparse.ArgumentParser, required: bool = True) -> None:
+    p.add_argument("--dataset", required=required, metavar="SRC",
                    help="a D4RL .hdf5 file, minari:<dataset id>, or a local Minari dataset name")
-    p.add_argument("--events", required=True, metavar="NAME_OR_YAML",
+    p.add_argument("--events", required=required, metavar="NAME_OR_YAML",
                    help="built-in event spec (door, relocate, kitchen, kitchen-v0) or a YAML file")
-    p.add_argument("--episode-ends", choices=EPISODE_ENDS, default="auto",
-                   help="which HDF5 flags end episodes (auto: the consistent ones)")
+    p.add_argument("--episode-ends", choices=EPISODE_ENDS, default=None if not required else "auto",
+                   help="which HDF5 flags end episodes (default auto: the consistent ones)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,11 +29,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("refine", help="refine a dataset with an event-ordered reward machine")
-    _add_source(p)
-    p.add_argument("--alpha", default="1.0", help="fraction of shortest sub-trajectories kept per group, in (0, 1]")
-    p.add_argument("--constraint", action="append", type=_constraint, default=[], metavar="A<B",
+    p.add_argument("--config", metavar="YAML", help="a refine recipe (recipes/refine/*.yaml); flags override it")
+    _add_source(p, required=False)
+    p.add_argument("--alpha", help="fraction of shortest sub-trajectories kept per group, in (0, 1] (default 1)")
+    p.add_argument("--constraint", action="append", type=_constraint, metavar="A<B",
                    help="event A must come before event B in the chosen order (repeatable)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (data/ and report.json)")
+    p.add_argument("--out", metavar="DIR", help="output directory (data/ and report.json)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
     p.set_defaults(run="rm_torchrl.cli.refine:run")
 

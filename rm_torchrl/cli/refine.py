@@ -1,15 +1,22 @@
 """``rmrl refine``: load, run the refinement stages one by one with a progress bar, write atomically."""
 from __future__ import annotations
 
+import os
 import sys
+from pathlib import Path
 
+import yaml
 from tqdm import tqdm
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.store import write_refined
+from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline
 from rm_torchrl.refine.shortest import check_alpha
+
+#: Recipe keys and their defaults (None: required).
+RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "auto", "constraints": [], "out": None}
 
 
 def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
@@ -22,13 +29,56 @@ def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
     return data, RefineReport.from_pipeline(pipeline)
 
 
+def load_recipe(path: str) -> dict:
+    """A refine recipe; relative dataset and event-spec files are found from the recipe's folder."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise RMError(f"cannot read recipe {path}: {err.strerror}") from None
+    except yaml.YAMLError as err:
+        raise RMError(f"recipe {path} is not valid YAML: {err}") from None
+    if not isinstance(data, dict):
+        raise RMError(f"recipe {path} must be a mapping of {sorted(RECIPE_KEYS)}")
+    unknown = set(data) - set(RECIPE_KEYS)
+    if unknown:
+        raise RMError(f"recipe {path}: unknown key(s) {sorted(unknown)}; allowed: {sorted(RECIPE_KEYS)}")
+    constraints = data.get("constraints") or []
+    if not isinstance(constraints, list) or not all(isinstance(c, str) and c.count("<") == 1 for c in constraints):
+        raise RMError(f"recipe {path}: constraints must be a list of 'a<b' strings")
+    data["constraints"] = [tuple(x.strip() for x in c.split("<")) for c in constraints]
+    base = Path(path).parent
+    for key in ("dataset", "events"):
+        value = data.get(key)
+        if isinstance(value, str) and Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml"):
+            data[key] = os.path.normpath(base / value)
+    return data
+
+
+def resolve_options(args) -> dict:
+    """Recipe values, overridden by the flags given on the command line."""
+    options = dict(RECIPE_KEYS)
+    if args.config:
+        options.update(load_recipe(args.config))
+    flags = {"dataset": args.dataset, "events": args.events, "alpha": args.alpha,
+             "episode_ends": args.episode_ends, "constraints": args.constraint, "out": args.out}
+    options.update({k: v for k, v in flags.items() if v is not None})
+    missing = [k for k, v in options.items() if v is None]
+    if missing:
+        raise RMError(f"missing {', '.join('--' + m.replace('_', '-') for m in missing)} (give the flag or a --config recipe)")
+    return options
+
+
 def run(args) -> int:
-    check_alpha(args.alpha)
-    spec = load_event_spec(args.events)
-    print(f"loading {args.dataset} ...", file=sys.stderr)
-    data = load_dataset(args.dataset, episode_ends=args.episode_ends)
-    refined, report = refine_with_progress(data, spec, args.alpha, args.constraint)
-    out = write_refined(args.out, refined, {"dataset": args.dataset, **report.to_dict()}, overwrite=args.overwrite)
+    opts = resolve_options(args)
+    check_alpha(opts["alpha"])
+    if Path(opts["out"]).exists() and not args.overwrite:
+        raise RMError(f"output directory {opts['out']} already exists; pass --overwrite to replace it")
+    spec = load_event_spec(opts["events"])
+    print(f"loading {opts['dataset']} ...", file=sys.stderr)
+    data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])
+    refined, report = refine_with_progress(data, spec, opts["alpha"], opts["constraints"])
+    meta = {"dataset": opts["dataset"], "episode_ends": opts["episode_ends"], **report.to_dict()}
+    out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
     print(report.table())
-    print(f"wrote {refined.numel():,} transitions to {out}/data and the report to {out}/report.json")
+    print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
     return 0
