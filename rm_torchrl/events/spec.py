@@ -39,6 +39,14 @@ _REDUCTIONS = {
 _FIELDS = {"name", "key", "index", "slice", "target", "target_key", "reduce", "op", "value"}
 
 
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def _as_key(key, where: str) -> tuple:
     if isinstance(key, str):
         return tuple(key.split("/")) if "/" in key else (key,)
@@ -77,24 +85,22 @@ class Event:
             if required not in d:
                 raise RMError(f"{where}: missing required field {required!r}")
         op = d["op"]
-        if op not in _OPS:
+        if not isinstance(op, str) or op not in _OPS:
             raise RMError(f"{where}: op must be one of {list(_OPS)}, got {op!r}")
         value = d["value"]
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if not _is_number(value):
             raise RMError(f"{where}: 'value' must be a finite number, got {value!r}")
         if "index" in d and "slice" in d:
             raise RMError(f"{where}: give either 'index' or 'slice', not both")
         index = d.get("index")
         if index is not None:
-            index = (index,) if isinstance(index, int) and not isinstance(index, bool) else index
-            if not (isinstance(index, (list, tuple)) and index and all(
-                isinstance(i, int) and not isinstance(i, bool) for i in index
-            )):
+            index = (index,) if _is_int(index) else index
+            if not (isinstance(index, (list, tuple)) and index and all(_is_int(i) for i in index)):
                 raise RMError(f"{where}: 'index' must be an int or a non-empty list of ints, got {index!r}")
             index = tuple(index)
         sl = d.get("slice")
         if sl is not None:
-            if not (isinstance(sl, (list, tuple)) and len(sl) == 2 and all(isinstance(i, int) for i in sl)
+            if not (isinstance(sl, (list, tuple)) and len(sl) == 2 and all(_is_int(i) for i in sl)
                     and 0 <= sl[0] < sl[1]):
                 raise RMError(f"{where}: 'slice' must be [start, stop] with 0 <= start < stop, got {sl!r}")
             sl = tuple(sl)
@@ -102,14 +108,12 @@ class Event:
             raise RMError(f"{where}: give either 'target' or 'target_key', not both")
         target = d.get("target")
         if target is not None:
-            target = [target] if isinstance(target, (int, float)) else target
-            if not (isinstance(target, (list, tuple)) and all(
-                isinstance(t, (int, float)) and math.isfinite(t) for t in target
-            )):
+            target = [target] if _is_number(target) else target
+            if not (isinstance(target, (list, tuple)) and target and all(_is_number(t) for t in target)):
                 raise RMError(f"{where}: 'target' must be a number or a list of finite numbers")
             target = tuple(float(t) for t in target)
         reduce = d.get("reduce")
-        if reduce is not None and reduce not in _REDUCTIONS:
+        if reduce is not None and (not isinstance(reduce, str) or reduce not in _REDUCTIONS):
             raise RMError(f"{where}: reduce must be one of {list(_REDUCTIONS)}, got {reduce!r}")
         return cls(
             name=name,

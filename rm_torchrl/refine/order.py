@@ -70,13 +70,20 @@ class EventOrder(DatasetTransform):
             in_keys=["subtrajectory", "group_from", "group_to"], out_keys=["group_rank"]
         )
         self.event_names = list(event_names)
-        self.constraints = [(self._id(a), self._id(b)) for a, b in constraints]
+        if isinstance(constraints, (str, bytes)):
+            raise RMError(f"constraints must be a list of (before, after) pairs, got the string {constraints!r}")
+        pairs = []
+        for c in constraints:
+            if not isinstance(c, (list, tuple)) or len(c) != 2:
+                raise RMError(f"each order constraint must be a pair (before, after), got {c!r}")
+            pairs.append((self._id(c[0]), self._id(c[1])))
+        self.constraints = pairs
         self.order: list[int] = []
         self.score = 0
         self.group_sizes: dict[tuple[int, int], int] = {}
 
     def _id(self, event) -> int:
-        if isinstance(event, int) and 1 <= event <= len(self.event_names):
+        if isinstance(event, int) and not isinstance(event, bool) and 1 <= event <= len(self.event_names):
             return event
         if event in self.event_names:
             return self.event_names.index(event) + 1

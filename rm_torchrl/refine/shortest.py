@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from fractions import Fraction
 
 import torch
@@ -14,7 +15,7 @@ from rm_torchrl.refine.segments import run_index, run_starts
 
 def check_alpha(alpha) -> Fraction:
     """alpha as an exact fraction, so that ceil(0.9 * 10) is 9 and not 10."""
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float, str, Fraction)):
+    if isinstance(alpha, bool) or not isinstance(alpha, (numbers.Real, str)):
         raise RMError(f"alpha must be a number in (0, 1], got {alpha!r}")
     try:
         exact = Fraction(str(alpha)) if not isinstance(alpha, Fraction) else alpha

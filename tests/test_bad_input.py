@@ -1,0 +1,321 @@
+"""Inputs a user can get wrong must raise RMError with a message that says what is wrong."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import reference as ref
+from rm_torchrl.errors import RMError
+from rm_torchrl.refine.shortest import check_alpha
+from rm_torchrl.events import EventSpec, builtin_specs, load_event_spec
+from rm_torchrl.refine import (
+    EventOrder,
+    KeepShortest,
+    LabelRM,
+    SplitGroup,
+    best_event_order,
+    make_refine_pipeline,
+    refine,
+)
+
+GOOD = {"name": "a", "key": "observation", "index": 0, "op": ">", "value": 0.5}
+
+
+def spec_with(**changes):
+    ev = {**GOOD, **changes}
+    for k, v in list(ev.items()):
+        if v is _DROP:
+            del ev[k]
+    return {"events": [ev]}
+
+
+_DROP = object()
+
+
+def small_data(n=2):
+    eps = [
+        [frozenset(), frozenset({1}), frozenset({1, 2})],
+        [frozenset(), frozenset({2}), frozenset({1, 2}), frozenset({1, 2})],
+    ]
+    return ref.episodes_to_td(eps, n)
+
+
+def test_rmerror_is_a_valueerror():
+    assert issubclass(RMError, ValueError)
+
+
+def test_small_data_is_fine():
+    td, spec = small_data()
+    out, report = refine(td, spec)
+    assert out.numel() > 0
+
+
+# --------------------------------------------------------------------------------------------
+# Event specs
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(
+    "changes,message",
+    [
+        ({"colour": "red"}, r"unknown field\(s\) \['colour'\]"),
+        ({"threshold": 0.5}, r"unknown field\(s\) \['threshold'\]"),
+        ({"op": "=="}, r"op must be one of .*'=='"),
+        ({"op": "gt"}, r"op must be one of"),
+        ({"op": None}, r"op must be one of"),
+        ({"value": _DROP}, r"missing required field 'value'"),
+        ({"op": _DROP}, r"missing required field 'op'"),
+        ({"value": float("nan")}, r"'value' must be a finite number, got nan"),
+        ({"value": float("inf")}, r"'value' must be a finite number"),
+        ({"value": "0.5"}, r"'value' must be a finite number"),
+        ({"value": True}, r"'value' must be a finite number"),
+        ({"name": _DROP}, r"non-empty string 'name'"),
+        ({"name": ""}, r"non-empty string 'name'"),
+        ({"index": []}, r"'index' must be an int or a non-empty list of ints"),
+        ({"index": 1.5}, r"'index' must be an int"),
+        ({"index": True}, r"'index' must be an int"),
+        ({"slice": [0, 2]}, r"either 'index' or 'slice'"),
+        ({"index": _DROP, "slice": [2, 1]}, r"'slice' must be \[start, stop\]"),
+        ({"target": [float("nan")]}, r"'target' must be a number or a list of finite numbers"),
+        ({"target": 1.0, "target_key": "goal"}, r"either 'target' or 'target_key'"),
+        ({"reduce": "mean"}, r"reduce must be one of"),
+        ({"key": 3}, r"'key' must be a string or a list of strings"),
+    ],
+)
+def test_bad_event_fields(changes, message):
+    with pytest.raises(RMError, match=message):
+        EventSpec.from_dict(spec_with(**changes))
+
+
+@pytest.mark.parametrize("changes", [{"op": [">"]}, {"reduce": ["norm"]}, {"op": {"gt": 1}}])
+def test_unhashable_op_or_reduce(changes):
+    with pytest.raises(RMError, match="must be one of"):
+        EventSpec.from_dict(spec_with(**changes))
+
+
+@pytest.mark.parametrize(
+    "data,message",
+    [
+        ({"events": [GOOD], "version": 2}, r"unknown top-level key\(s\) \['version'\]"),
+        ({"evnts": [GOOD]}, r"expected a mapping with an 'events' list"),
+        (None, r"expected a mapping with an 'events' list"),
+        ({"events": 5}, r"'events' must be a list"),
+        ({"events": []}, r"declares no events"),
+        ({"events": ["a > 0.5"]}, r"event #1: expected a mapping"),
+        ({"events": [GOOD, GOOD]}, r"duplicate event names \['a'\]"),
+        ({"events": [{**GOOD, "name": "e0"}]}, r"'e0' is reserved"),
+    ],
+)
+def test_bad_spec_structure(data, message):
+    with pytest.raises(RMError, match=message):
+        EventSpec.from_dict(data)
+
+
+def test_malformed_yaml_file(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("events:\n  - {name: a, key: observation, index: 0, op: '>', value: 0.5\n")
+    with pytest.raises(RMError, match="is not valid YAML"):
+        load_event_spec(path)
+    with pytest.raises(RMError, match="broken.yaml"):
+        EventSpec.from_yaml(path)
+
+
+def test_yaml_with_bad_content(tmp_path):
+    path = tmp_path / "bad.yml"
+    path.write_text("events:\n  - {name: a, index: 0, op: '=>', value: 0.5}\n")
+    with pytest.raises(RMError, match="op must be one of"):
+        load_event_spec(str(path))
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    with pytest.raises(RMError, match="'events' list"):
+        load_event_spec(empty)
+
+
+def test_good_yaml_file_loads(tmp_path):
+    path = tmp_path / "ok.yaml"
+    path.write_text("description: two bits\nevents:\n  - {name: a, index: 0, op: '>', value: 0.5}\n"
+                    "  - {name: b, index: 1, op: '>', value: 0.5}\n")
+    spec = load_event_spec(path)
+    assert spec.names == ["a", "b"]
+    td, _ = small_data()
+    assert torch.equal(spec(td), td["observation"][:, :2] > 0.5)
+
+
+def test_unknown_builtin_and_missing_file(tmp_path):
+    with pytest.raises(RMError, match=r"unknown event spec 'doorr'.*'door'"):
+        load_event_spec("doorr")
+    with pytest.raises(RMError, match="does not exist"):
+        load_event_spec(tmp_path / "nope.yaml")
+    assert {"door", "relocate", "kitchen"} <= set(builtin_specs())
+    assert load_event_spec("door").n == 4
+
+
+# --------------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------------
+
+def test_nan_in_observation():
+    td, spec = small_data()
+    td["observation"][1, 0] = float("nan")
+    with pytest.raises(RMError, match=r"non-finite values \(NaN or inf\) in observation at rows \[\[1\]\]"):
+        refine(td, spec)
+    td, spec = small_data()
+    td["next", "observation"][2, 1] = float("inf")
+    with pytest.raises(RMError, match="non-finite"):
+        LabelRM(spec)(td)
+
+
+def test_index_out_of_range_of_observation():
+    td, _ = small_data()  # observation has 2 event columns + 1 noise column
+    spec = EventSpec.from_dict(spec_with(index=3))
+    with pytest.raises(RMError, match=r"index \[3\] is out of range for the last dimension 3"):
+        refine(td, spec)
+    spec = EventSpec.from_dict(spec_with(index=-4))
+    with pytest.raises(RMError, match="out of range"):
+        refine(td, spec)
+    spec = EventSpec.from_dict(spec_with(index=_DROP, slice=[1, 5]))
+    with pytest.raises(RMError, match=r"slice \[1, 5\] exceeds the last dimension 3"):
+        refine(td, spec)
+
+
+def test_spec_reads_missing_key_or_needs_reduce():
+    td, _ = small_data()
+    with pytest.raises(RMError, match="reads key 'goal', which the data does not have"):
+        refine(td, EventSpec.from_dict(spec_with(key="goal")))
+    with pytest.raises(RMError, match="add 'reduce'"):
+        refine(td, EventSpec.from_dict(spec_with(index=[0, 1])))
+
+
+def test_callable_returning_wrong_shape():
+    td, _ = small_data()
+    spec = EventSpec.from_callables([lambda o: o["observation"][:, 0] > 0.5, lambda o: torch.tensor(True)], ["a", "b"])
+    with pytest.raises(RMError, match=r"event 'b' returned .*expected a tensor of shape \(5,\)"):
+        refine(td, spec)
+
+
+def test_two_dimensional_batch():
+    td, spec = small_data()
+    td = td[:4].reshape(2, 2)
+    with pytest.raises(RMError, match=r"flat dataset of transitions .*got batch_size \[2, 2\].*reshape\(-1\)"):
+        refine(td, spec)
+    with pytest.raises(RMError, match="flat dataset"):
+        SplitGroup()(td)
+
+
+def test_empty_dataset():
+    td, spec = small_data()
+    with pytest.raises(RMError, match="the dataset is empty"):
+        refine(td[:0], spec)
+
+
+def test_non_contiguous_episodes():
+    td, spec = small_data()
+    td["episode"] = torch.tensor([0, 0, 1, 1, 0])
+    with pytest.raises(RMError, match="contiguous run.*found 3 runs for 2 episode ids"):
+        refine(td, spec)
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (lambda td: td.set("episode", td["episode"].unsqueeze(-1)), "must be 1-D"),
+        (lambda td: td.set("episode", td["episode"].float()), "must hold integer ids"),
+        (lambda td: td.del_("episode"), r"needs key\(s\) \['episode'\]"),
+        (lambda td: td.del_("next"), r"next observations under \('next', ...\)"),
+        (lambda td: td.del_(("next", "observation")), "reads key 'observation'"),
+    ],
+)
+def test_bad_episode_or_next_columns(change, message):
+    td, spec = small_data()
+    change(td)
+    with pytest.raises(RMError, match=message):
+        refine(td, spec)
+
+
+def test_stage_run_out_of_order():
+    td, spec = small_data()
+    with pytest.raises(RMError, match=r"SplitGroup needs key\(s\).*rm_state.*run the earlier refinement stages"):
+        SplitGroup()(td)
+    with pytest.raises(RMError, match="EventOrder needs key"):
+        EventOrder(spec.names)(LabelRM(spec)(td))
+
+
+# --------------------------------------------------------------------------------------------
+# Options
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("alpha", [0, 0.0, -0.1, 1.5, "abc", True, False, None, float("nan"), [0.5]])
+def test_bad_alpha(alpha):
+    with pytest.raises(RMError, match="alpha must"):
+        KeepShortest(alpha)
+    with pytest.raises(RMError, match="alpha must"):
+        make_refine_pipeline(small_data()[1], alpha=alpha)
+    td, spec = small_data()
+    with pytest.raises(RMError, match="alpha must"):
+        refine(td, spec, alpha=alpha)
+
+
+@pytest.mark.parametrize("alpha", [1, 1.0, 0.5, "0.5", 1e-9])
+def test_good_alpha(alpha):
+    KeepShortest(alpha)
+
+
+@pytest.mark.parametrize(
+    "constraints,message",
+    [
+        ([("ev1", "nope")], r"order constraint names unknown event 'nope'; the events are \['ev1', 'ev2'\]"),
+        ([("door", "ev2")], "unknown event 'door'"),
+        ([(0, 1)], "unknown event 0"),
+        ([(1, 3)], "unknown event 3"),
+    ],
+)
+def test_constraints_naming_unknown_events(constraints, message):
+    td, spec = small_data()
+    with pytest.raises(RMError, match=message):
+        EventOrder(spec.names, constraints)
+    with pytest.raises(RMError, match=message):
+        refine(td, spec, constraints=constraints)
+
+
+def test_self_or_cyclic_constraints():
+    td, spec = small_data()
+    with pytest.raises(RMError, match=r"invalid order constraint \(1, 1\)"):
+        refine(td, spec, constraints=[("ev1", "ev1")])
+    with pytest.raises(RMError, match="every event order scores 0.*under the given constraints"):
+        refine(td, spec, constraints=[("ev1", "ev2"), (2, 1)])
+    with pytest.raises(RMError, match="invalid order constraint"):
+        best_event_order([[0, 1], [0, 0]], [(1, 2)])
+
+
+@pytest.mark.parametrize("constraints", [[("ev1", "ev2", "ev1")], [("ev1",)], "ev1<ev2"])
+def test_malformed_constraints(constraints):
+    td, spec = small_data()
+    with pytest.raises(RMError, match="constraint"):
+        EventOrder(spec.names, constraints)
+
+
+def test_no_event_and_zero_score_messages():
+    eps = [[frozenset(), frozenset(), frozenset()]]
+    td, spec = ref.episodes_to_td(eps, 2)
+    with pytest.raises(RMError, match="no event ever happens.*check the event spec thresholds"):
+        refine(td, spec)
+    eps = [[frozenset(), frozenset({2})]]
+    td, spec = ref.episodes_to_td(eps, 2)
+    with pytest.raises(RMError, match=r"every event order scores 0.*group sizes: \{'e0->ev2': 1\}"):
+        refine(td, spec)
+
+
+@pytest.mark.parametrize("changes", [{"target": True}, {"slice": [True, 3]}, {"value": True}])
+def test_bools_are_not_numbers(changes):
+    with pytest.raises(RMError):
+        EventSpec.from_dict(spec_with(**changes))
+
+
+def test_bool_constraint_ids_rejected():
+    with pytest.raises(RMError, match="unknown event"):
+        EventOrder(["ev1", "ev2"], [(True, 2)])
+
+
+def test_numpy_alpha_accepted():
+    import numpy as np
+
+    assert check_alpha(np.float32(0.5)) == check_alpha(0.5)
