@@ -3,3 +3,10 @@
 
 class RMError(ValueError):
     """Bad input to rm_torchrl: a malformed spec, wrong shapes, NaNs, empty data, bad options."""
+
+
+def yaml_problem(err) -> str:
+    """A one-line description of a PyYAML error: what is wrong and where."""
+    problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+    mark = getattr(err, "problem_mark", None)
+    return f"{problem} (line {mark.line + 1}, column {mark.column + 1})" if mark else problem

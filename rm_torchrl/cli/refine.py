@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.store import write_refined
-from rm_torchrl.errors import RMError
+from rm_torchrl.errors import RMError, yaml_problem
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline
 from rm_torchrl.refine.shortest import check_alpha
@@ -36,7 +36,7 @@ def load_recipe(path: str) -> dict:
     except OSError as err:
         raise RMError(f"cannot read recipe {path}: {err.strerror}") from None
     except yaml.YAMLError as err:
-        raise RMError(f"recipe {path} is not valid YAML: {err}") from None
+        raise RMError(f"recipe {path} is not valid YAML: {yaml_problem(err)}") from None
     if not isinstance(data, dict):
         raise RMError(f"recipe {path} must be a mapping of {sorted(RECIPE_KEYS)}")
     unknown = set(data) - set(RECIPE_KEYS)

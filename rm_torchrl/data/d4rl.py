@@ -55,8 +55,8 @@ def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
 
     Keys: ``observation``, ``action``, ``("next", "observation")``, ``("next", "reward")``,
     ``("next", "terminated" | "truncated" | "done")`` and ``episode``. ``terminated`` copies the
-    D4RL terminal flag of the step; the last transition of an episode that is not terminal is
-    truncated.
+    D4RL terminal flag of the step (the flag of an episode's dropped last step goes to its last
+    transition); the last transition of an episode that does not end in a terminal is truncated.
     """
     import h5py
 
@@ -92,7 +92,9 @@ def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
         raise RMError(f"{path}: every episode has a single step, so there are no transitions")
     rows = np.flatnonzero(keep)
     last = ends[rows + 1]
-    terminated = torch.from_numpy(terminals[rows]).unsqueeze(-1)
+    # The step carrying an episode's final terminal flag has no successor and is dropped: its
+    # flag moves to the episode's last transition, which ends in that terminal state.
+    terminated = torch.from_numpy(terminals[rows] | (last & terminals[rows + 1])).unsqueeze(-1)
     truncated = torch.from_numpy(last).unsqueeze(-1) & ~terminated
     td = TensorDict(
         {

@@ -21,7 +21,7 @@ import torch
 import yaml
 from tensordict import TensorDictBase
 
-from rm_torchrl.errors import RMError
+from rm_torchrl.errors import RMError, yaml_problem
 
 NestedKey = Union[str, tuple]
 _OPS: dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
@@ -160,7 +160,7 @@ class Event:
         elif x.shape[-1] != 1:
             raise RMError(f"event {self.name!r} selects {x.shape[-1]} entries: add 'reduce' (one of {list(_REDUCTIONS)}) or select one")
         else:
-            x = x.squeeze(-1)
+            x = x.squeeze(-1).contiguous()  # several events may compare it: read the column once
         if not torch.isfinite(x.sum()) and not torch.isfinite(x).all():
             bad = (~torch.isfinite(x)).nonzero()[:5].tolist()
             raise RMError(f"event {self.name!r}: non-finite values (NaN or inf) in {'/'.join(self.key)} at rows {bad}")
@@ -260,7 +260,7 @@ class EventSpec:
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as err:
-            raise RMError(f"event spec {path} is not valid YAML: {err}") from None
+            raise RMError(f"event spec {path} is not valid YAML: {yaml_problem(err)}") from None
         return cls.from_dict(data, source=str(path))
 
     @classmethod

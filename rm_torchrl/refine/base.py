@@ -60,8 +60,11 @@ class DatasetTransform(Transform):
         return ""
 
 
-def select_rows(td: TensorDictBase, keep: torch.Tensor) -> TensorDictBase:
-    """Rows where ``keep`` holds; no copy when every row is kept."""
-    if bool(keep.all()):
+def take_rows(td: TensorDictBase, rows: torch.Tensor) -> TensorDictBase:
+    """The given rows (sorted indices); no copy when that is every row.
+
+    One ``index_select`` per leaf is several times faster than ``td[rows]`` on wide data.
+    """
+    if rows.numel() == td.batch_size[0]:
         return td
-    return td[keep.nonzero().squeeze(-1)]
+    return td.apply(lambda x: x.index_select(0, rows), batch_size=[rows.numel()])

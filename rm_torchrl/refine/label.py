@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.base import DatasetTransform
-from rm_torchrl.refine.segments import episode_runs, run_index
+from rm_torchrl.refine.segments import episode_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
@@ -34,33 +34,33 @@ class LabelRM(DatasetTransform):
         if "next" not in td.keys():
             raise RMError("LabelRM needs the next observations under ('next', ...) in the dataset")
         fired = self.spec(td.get("next")) & ~self.spec(td)
-        run = run_index(starts)
         start_rows = starts.nonzero().squeeze(-1)
-        n, n_runs = self.rm.n, start_rows.numel()
+        n, n_runs, rows = self.rm.n, start_rows.numel(), starts.numel()
         never = torch.iinfo(torch.long).max
         first = torch.full((n_runs * n,), never, dtype=torch.long)
         row, event = fired.nonzero(as_tuple=True)
-        step = row - start_rows[run[row]]
-        first.scatter_reduce_(0, run[row] * n + event, step, "amin")
+        run = torch.searchsorted(start_rows, row, right=True) - 1
+        first.scatter_reduce_(0, run * n + event, row - start_rows[run], "amin")
         first = first.view(n_runs, n)
-        # The state only changes where an event first fires: label those rows and the episode
-        # starts, then carry each label forward to the rows that follow it.
-        points = starts.clone()
-        points[(start_rows.unsqueeze(-1) + first)[first < never]] = True
-        point_rows = points.nonzero().squeeze(-1)
-        point_run = run[point_rows]
+        # The state only changes where an event first fires. Label those rows and the episode
+        # starts from `first`, then repeat each label over the rows up to the next such point.
+        fire_rows = (start_rows.unsqueeze(-1) + first)[first < never]
+        point_rows = torch.cat([start_rows, fire_rows]).unique()
+        point_run = torch.searchsorted(start_rows, point_rows, right=True) - 1
         point_step = (point_rows - start_rows[point_run]).unsqueeze(-1)
         ids = torch.arange(n)
         before = (first.unsqueeze(-1) < first.unsqueeze(-2)) | (
             (first.unsqueeze(-1) == first.unsqueeze(-2)) & (ids.unsqueeze(-1) < ids)
         )
         slot = before.sum(-2)[point_run]
-        fired_by = torch.where(first[point_run] <= point_step, ids + 1, 0)
-        table = torch.zeros_like(slot).scatter_(1, slot, fired_by)
-        next_state = table[points.long().cumsum(0) - 1]
-        state = torch.empty_like(next_state)
-        state[1:] = next_state[:-1]
-        state[start_rows] = 0
+        after = torch.zeros_like(slot).scatter_(1, slot, torch.where(first[point_run] <= point_step, ids + 1, 0))
+        span = torch.diff(point_rows, append=point_rows.new_tensor([rows]))
+        next_state = after.repeat_interleave(span, 0, output_size=rows)
+        # u_t is u_{t+1} of the row before, except at episode starts where it is u_I.
+        is_start = point_step.squeeze(-1) == 0
+        at_point = torch.where(is_start.unsqueeze(-1), 0, torch.cat([after.new_zeros(1, n), after[:-1]]))
+        pieces = torch.stack([at_point, after], 1).flatten(0, 1)
+        state = pieces.repeat_interleave(torch.stack([torch.ones_like(span), span - 1], 1).flatten(), 0, output_size=rows)
         td.set(self.out_keys[0], state)
         td.set(self.out_keys[1], next_state)
         self._episodes_reaching = (first < never).sum(0).tolist()

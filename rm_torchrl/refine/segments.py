@@ -54,3 +54,10 @@ def shift_down(x: torch.Tensor, fill) -> torch.Tensor:
     out[:1] = fill
     out[1:] = x[:-1]
     return out
+
+
+def rows_of_runs(first_rows: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """Row indices of the given runs, concatenated in order."""
+    total = int(lengths.sum())
+    offsets = lengths.cumsum(0) - lengths
+    return torch.arange(total, device=lengths.device) + (first_rows - offsets).repeat_interleave(lengths, output_size=total)

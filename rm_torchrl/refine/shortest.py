@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.refine.base import DatasetTransform, select_rows
-from rm_torchrl.refine.segments import run_index, run_starts
+from rm_torchrl.refine.base import DatasetTransform, take_rows
+from rm_torchrl.refine.segments import rows_of_runs, run_starts
 
 
 def check_alpha(alpha) -> Fraction:
@@ -42,9 +42,8 @@ class KeepShortest(DatasetTransform):
     def _refine(self, td: TensorDictBase) -> TensorDictBase:
         if self.alpha == 1:
             return td
-        piece = run_index(run_starts(td.get("subtrajectory")))
-        length = torch.bincount(piece)
-        first_rows = torch.cat([length.new_zeros(1), length.cumsum(0)[:-1]])
+        first_rows = run_starts(td.get("subtrajectory")).nonzero().squeeze(-1)
+        length = torch.diff(first_rows, append=first_rows.new_tensor([td.batch_size[0]]))
         group = td.get("group_rank")[first_rows]
         by_length = torch.sort(length, stable=True).indices
         ranked = by_length[torch.sort(group[by_length], stable=True).indices]
@@ -55,6 +54,6 @@ class KeepShortest(DatasetTransform):
         group_first = torch.cat([sizes.new_zeros(1), sizes.cumsum(0)[:-1]])
         sorted_group = group[ranked]
         position = torch.arange(ranked.numel()) - group_first[sorted_group]
-        kept_piece = torch.zeros_like(length, dtype=torch.bool)
-        kept_piece[ranked] = position < quota[sorted_group]
-        return select_rows(td, kept_piece[piece])
+        kept = torch.zeros_like(length, dtype=torch.bool)
+        kept[ranked] = position < quota[sorted_group]
+        return take_rows(td, rows_of_runs(first_rows[kept], length[kept]))

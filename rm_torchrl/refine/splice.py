@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from tensordict import TensorDictBase
 
-from rm_torchrl.refine.base import DatasetTransform, select_rows
+from rm_torchrl.refine.base import DatasetTransform, take_rows
 
 
 class Splice(DatasetTransform):
@@ -13,4 +13,4 @@ class Splice(DatasetTransform):
         super().__init__(in_keys=["group_rank"], out_keys=[])
 
     def _refine(self, td: TensorDictBase) -> TensorDictBase:
-        return select_rows(td, td.get("group_rank") > 0)
+        return take_rows(td, (td.get("group_rank") > 0).nonzero().squeeze(-1))

@@ -5,8 +5,8 @@ import torch
 from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.refine.base import DatasetTransform, select_rows
-from rm_torchrl.refine.segments import episode_runs, run_ends, run_index, shift_down
+from rm_torchrl.refine.base import DatasetTransform, take_rows
+from rm_torchrl.refine.segments import episode_runs, rows_of_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
@@ -29,25 +29,28 @@ class SplitGroup(DatasetTransform):
         rm = EventOrderedRM(state.shape[-1])
         episode_start = episode_runs(td.get(self.episode_key))
         is_event = (state != next_state).any(-1)
-        if not bool(is_event.any()):
+        event_rows = is_event.nonzero().squeeze(-1)
+        if event_rows.numel() == 0:
             raise RMError(
                 "no event ever happens in this dataset: every transition keeps its RM state, so "
                 "there is nothing to split; check the event spec thresholds with `rmrl inspect`"
             )
-        starts = episode_start | shift_down(is_event, True)
-        piece = run_index(starts)
-        ends = run_ends(starts)
-        end_rows = ends.nonzero().squeeze(-1)
-        kept_piece = is_event[end_rows]
-        group_from = rm.latest_event(state[end_rows])
-        group_to = rm.latest_event(next_state[end_rows])
-        new_id = kept_piece.long().cumsum(0) - 1
-        keep = kept_piece[piece]
-        self._pieces = int(kept_piece.sum())
-        td.set("subtrajectory", new_id[piece])
-        td.set("group_from", group_from[piece])
-        td.set("group_to", group_to[piece])
-        return select_rows(td, keep)
+        # A piece ends at an event row; it starts after the previous event row or at its episode start.
+        start_rows = episode_start.nonzero().squeeze(-1)
+        episode_first = start_rows[torch.searchsorted(start_rows, event_rows, right=True) - 1]
+        previous_end = torch.cat([event_rows.new_tensor([-1]), event_rows[:-1]])
+        first = torch.maximum(episode_first, previous_end + 1)
+        lengths = event_rows - first + 1
+        self._pieces = event_rows.numel()
+        out = take_rows(td, rows_of_runs(first, lengths))
+        total = out.batch_size[0]
+        ids = torch.arange(self._pieces)
+        out.set("subtrajectory", ids.repeat_interleave(lengths, output_size=total))
+        group_from = rm.latest_event(state[event_rows])
+        group_to = rm.latest_event(next_state[event_rows])
+        out.set("group_from", group_from.repeat_interleave(lengths, output_size=total))
+        out.set("group_to", group_to.repeat_interleave(lengths, output_size=total))
+        return out
 
     def _extra_stats(self) -> dict:
         return {"subtrajectories": self._pieces}

@@ -1,0 +1,396 @@
+"""The ``rmrl`` command: in-process through ``rm_torchrl.cli.main.main`` and once as the console script.
+
+Most commands run on a tiny door-like D4RL HDF5 file built here (6 episodes of 40 steps in which the
+palm reaches the handle and the hinge then opens past 0.2, 1.0 and 1.35 rad), so they need no
+download; the paper's numbers are checked on the real door-human-v0 file when it is present.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rm_torchrl.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[1]
+D4RL = ROOT.parent / "shared" / "data" / "d4rl"
+DOOR = D4RL / "door-human-v0.hdf5"
+KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
+needs_door = pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} not available")
+needs_kitchen = pytest.mark.skipif(not KITCHEN.is_file(), reason=f"{KITCHEN} not available")
+
+DOOR_EVENTS = ["reach_handle", "door_0.2", "door_1.0", "door_1.35"]
+KITCHEN_EVENTS = ["microwave", "kettle", "light switch", "slide cabinet"]
+
+
+def write_door_h5(path: Path, n_eps: int = 6, T: int = 40, events: bool = True) -> Path:
+    """D4RL door layout (39-dim obs, 28-dim action); obs[0] jumps by 100 between episodes."""
+    obs, term = [], []
+    for e in range(n_eps):
+        t = np.arange(T, dtype=np.float32)
+        o = np.zeros((T, 39), np.float32)
+        o[:, 0] = 100.0 * e + 0.01 * t
+        if events:
+            o[:, 35] = np.maximum(0.5 - 0.05 * t, 0.05)                    # |palm - handle|
+            o[:, 28] = np.clip((t - 10) * (0.08 + 0.02 * e), 0, 1.6)       # hinge angle
+        else:
+            o[:, 35] = 0.5                                                 # never near the handle
+        obs.append(o)
+        end = np.zeros(T, bool)
+        end[-1] = True
+        term.append(end)
+    obs = np.concatenate(obs)
+    n = len(obs)
+    with h5py.File(path, "w") as f:
+        f["observations"] = obs
+        f["actions"] = np.zeros((n, 28), np.float32)
+        f["rewards"] = np.zeros(n, np.float32)
+        f["terminals"] = np.concatenate(term)
+        f["timeouts"] = np.zeros(n, bool)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> str:
+    return str(write_door_h5(tmp_path_factory.mktemp("tiny") / "door-tiny.hdf5"))
+
+
+@pytest.fixture(scope="module")
+def no_events(tmp_path_factory) -> str:
+    return str(write_door_h5(tmp_path_factory.mktemp("none") / "door-none.hdf5", events=False))
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def error_line(err: str, command: str) -> str:
+    """The one error line of stderr, after progress output ('\\r'-redrawn bars, 'loading ...')."""
+    assert "Traceback" not in err, err
+    lines = [line.strip() for line in err.replace("\r", "\n").split("\n") if line.strip()]
+    assert lines, "nothing on stderr"
+    prefix = f"rmrl {command}: error: "
+    assert sum(prefix in line for line in lines) == 1, err
+    assert lines[-1].startswith(prefix), f"the error is not a single last line:\n{err}"
+    return lines[-1][len(prefix):]
+
+
+def assert_error(capsys, command, argv, match):
+    code, out, err = run(capsys, *argv)
+    assert code == 2, (code, out, err)
+    message = error_line(err, command)
+    assert match in message, message
+    return message
+
+
+def load_report(out: Path) -> dict:
+    return json.loads((out / "report.json").read_text())
+
+
+# --------------------------------------------------------------------------------------------
+# refine on the real data: the paper's Table 2
+# --------------------------------------------------------------------------------------------
+
+TABLE2 = {"original": 6704, "split": 5001, "ordered": 5001, "shorter": 2261}
+
+
+def check_door_human_output(out: Path):
+    report = load_report(out)
+    assert report["stages"] == TABLE2
+    assert report["order"] == DOOR_EVENTS
+    assert report["alpha"] == 0.5
+    data = TensorDict.load_memmap(out / "data")
+    assert data.batch_size == torch.Size([2261])
+    for key in ("rm_state", ("next", "rm_state")):
+        assert data[key].dtype == torch.int64, key
+        assert data[key].shape == (2261, 4), key
+    assert "episode" in data.keys()
+    assert data["episode"].shape == (2261,)
+    return report
+
+
+@needs_door
+def test_refine_door_human_reproduces_table2(capsys, tmp_path):
+    out = tmp_path / "door-human"
+    code, stdout, err = run(capsys, "refine", "--dataset", DOOR, "--events", "door", "--alpha", "0.5", "--out", out)
+    assert code == 0, err
+    report = check_door_human_output(out)
+    assert report["episode_ends"] == "auto"
+    for label, count in (("Original Dataset", "6,704"), ("Splitting Traj.", "5,001"),
+                         ("Ordered Events", "5,001"), ("Shorter Traj.", "2,261")):
+        assert any(label in line and count in line for line in stdout.splitlines()), (label, stdout)
+    assert "reach_handle -> door_0.2 -> door_1.0 -> door_1.35" in stdout
+    assert "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["door-human"]  # no temporary leftovers
+
+
+@needs_door
+def test_refine_door_human_from_recipe(capsys, tmp_path):
+    out = tmp_path / "recipe-out"
+    code, stdout, err = run(capsys, "refine", "--config", ROOT / "recipes" / "refine" / "door-human.yaml", "--out", out)
+    assert code == 0, err
+    report = check_door_human_output(out)
+    assert report["episode_ends"] == "terminals"
+    assert Path(report["dataset"]).resolve() == DOOR.resolve()
+
+
+@needs_kitchen
+def test_refine_kitchen_complete(capsys, tmp_path):
+    out = tmp_path / "kitchen"
+    code, stdout, err = run(capsys, "refine", "--dataset", KITCHEN, "--events", "kitchen-v0", "--alpha", "0.5",
+                            "--out", out)
+    assert code == 0, err
+    report = load_report(out)
+    stages = [report["stages"][k] for k in ("original", "split", "ordered", "shorter")]
+    assert stages[0] == 3661
+    assert all(a >= b for a, b in zip(stages, stages[1:])), stages
+    assert stages[-1] > 0
+    assert sorted(report["order"]) == sorted(KITCHEN_EVENTS)
+    data = TensorDict.load_memmap(out / "data")
+    assert data.batch_size[0] == stages[-1]
+
+
+# --------------------------------------------------------------------------------------------
+# refine on the tiny file
+# --------------------------------------------------------------------------------------------
+
+def test_refine_tiny(capsys, tmp_path, tiny):
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, "refine", "--dataset", tiny, "--events", "door", "--alpha", "0.5", "--out", out)
+    assert code == 0, err
+    report = load_report(out)
+    assert report["stages"]["original"] == 6 * 39
+    assert report["order"] == DOOR_EVENTS
+    data = TensorDict.load_memmap(out / "data")
+    assert data.batch_size[0] == report["stages"]["shorter"]
+    assert f"wrote {report['stages']['shorter']:,} transitions" in stdout
+
+
+def test_output_exists_without_and_with_overwrite(capsys, tmp_path, tiny):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("previous")
+    args = ["refine", "--dataset", tiny, "--events", "door", "--alpha", "0.5", "--out", out]
+    assert_error(capsys, "refine", args, "already exists; pass --overwrite")
+    assert (out / "keep.txt").read_text() == "previous"
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+    code, _, err = run(capsys, *args, "--overwrite")
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["data", "report.json"]
+    assert load_report(out)["order"] == DOOR_EVENTS
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+# --------------------------------------------------------------------------------------------
+# inspect, rm-graph, demo
+# --------------------------------------------------------------------------------------------
+
+def test_inspect_table(capsys, tiny):
+    code, out, err = run(capsys, "inspect", "--dataset", tiny, "--events", "door")
+    assert code == 0, err
+    assert "6 episodes, 234 transitions" in out
+    lines = out.splitlines()
+    for name in DOOR_EVENTS:
+        assert any(line.startswith(name + " ") for line in lines), (name, out)
+
+
+def test_inspect_json(capsys, tiny):
+    code, out, err = run(capsys, "inspect", "--dataset", tiny, "--events", "door", "--json")
+    assert code == 0, err
+    stats = json.loads(out)
+    assert [s["event"] for s in stats] == DOOR_EVENTS
+    assert all(s["episodes"] == 6 and s["episodes_firing"] == 6 for s in stats)
+
+
+@needs_kitchen
+def test_inspect_kitchen_table_names_every_event(capsys):
+    code, out, err = run(capsys, "inspect", "--dataset", KITCHEN, "--events", "kitchen-v0")
+    assert code == 0, err
+    assert "19 episodes, 3661 transitions" in out
+    for name in KITCHEN_EVENTS:
+        assert any(line.startswith(name + " ") for line in out.splitlines()), name
+
+
+@pytest.mark.parametrize("fmt,head", [("dot", "digraph"), ("mermaid", "flowchart LR")])
+def test_rm_graph(capsys, tmp_path, fmt, head):
+    code, text, err = run(capsys, "rm-graph", "--events", "door", "--format", fmt)
+    assert code == 0, err
+    assert text.startswith(head)
+    for name in DOOR_EVENTS:
+        assert name in text
+    target = tmp_path / f"rm.{fmt}"
+    code, out, err = run(capsys, "rm-graph", "--events", "door", "--format", fmt, "--out", target)
+    assert code == 0, err
+    assert target.read_text() == text.rstrip("\n") + "\n"
+    assert f"wrote the 65-state RM to {target}" in out  # 1 + 4 + 12 + 24 + 24 states
+
+
+def test_rm_graph_default_is_dot(capsys):
+    code, text, _ = run(capsys, "rm-graph", "--events", "kitchen-v0")
+    assert code == 0
+    assert text.startswith("digraph") and "slide cabinet" in text
+
+
+def test_demo(capsys, tmp_path):
+    out = tmp_path / "demo"
+    code, stdout, err = run(capsys, "demo", "--transitions", 5000, "--out", out)
+    assert code == 0, err
+    report = load_report(out)
+    assert report["stages"]["original"] == 5000
+    assert report["order"] == DOOR_EVENTS
+    data = TensorDict.load_memmap(out / "data")
+    assert data.batch_size[0] == report["stages"]["shorter"] > 0
+    assert data["rm_state"].shape == (data.batch_size[0], 4)
+    assert "Shorter Traj." in stdout
+
+
+# --------------------------------------------------------------------------------------------
+# Errors: exit code 2, one line on stderr, no traceback
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("alpha", ["0", "1.5", "abc", "-0.5", "nan"])
+def test_bad_alpha(capsys, tmp_path, tiny, alpha):
+    out = tmp_path / "out"
+    assert_error(capsys, "refine", ["refine", "--dataset", tiny, "--events", "door", f"--alpha={alpha}", "--out", out],
+                 "alpha")
+    assert not out.exists()
+
+
+def test_bad_alpha_demo(capsys, tmp_path):
+    assert_error(capsys, "demo", ["demo", "--transitions", 100, "--alpha", "0", "--out", tmp_path / "d"], "alpha")
+    assert not (tmp_path / "d").exists()
+
+
+def test_unknown_events_name(capsys, tmp_path, tiny):
+    for argv in (["refine", "--dataset", tiny, "--events", "doors", "--out", tmp_path / "o"],
+                 ["inspect", "--dataset", tiny, "--events", "doors"],
+                 ["rm-graph", "--events", "doors"]):
+        message = assert_error(capsys, argv[0], argv, "unknown event spec 'doors'")
+        assert "door" in message and "kitchen-v0" in message  # lists the built-ins
+    assert not (tmp_path / "o").exists()
+
+
+def test_event_spec_file_missing(capsys, tmp_path):
+    assert_error(capsys, "rm-graph", ["rm-graph", "--events", tmp_path / "nope.yaml"], "does not exist")
+
+
+BAD_YAML = 'events:\n  - {name: a, key: observation, index: 0, op: "<", value: [1\n'
+
+
+def test_malformed_yaml_event_spec_is_a_clean_error(capsys, tmp_path, tiny):
+    spec = tmp_path / "bad.yaml"
+    spec.write_text(BAD_YAML)
+    code, out, err = run(capsys, "refine", "--dataset", tiny, "--events", spec, "--out", tmp_path / "o")
+    assert code == 2
+    assert "Traceback" not in err
+    assert f"rmrl refine: error: event spec {spec} is not valid YAML" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("where", ["events", "config"])
+def test_malformed_yaml_error_is_one_line(capsys, tmp_path, tiny, where):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(BAD_YAML if where == "events" else "dataset: [x\nalpha: 0.5\n")
+    argv = ["refine", "--dataset", tiny, "--out", tmp_path / "o"]
+    argv += ["--events", bad] if where == "events" else ["--events", "door", "--config", bad]
+    assert_error(capsys, "refine", argv, "not valid YAML")
+
+
+@pytest.mark.parametrize("spec,match", [
+    ('events:\n  - {name: a, key: observation, index: 0, value: 1}\n', "missing required field 'op'"),
+    ('events:\n  - {name: a, index: 0, op: "<<", value: 1}\n', "op must be one of"),
+    ("just a string\n", "expected a mapping with an 'events' list"),
+    ("events: []\n", "declares no events"),
+])
+def test_invalid_event_spec_file(capsys, tmp_path, spec, match):
+    path = tmp_path / "spec.yaml"
+    path.write_text(spec)
+    assert_error(capsys, "rm-graph", ["rm-graph", "--events", path], match)
+
+
+def test_unknown_recipe_key(capsys, tmp_path, tiny):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"dataset: {tiny}\nevents: door\nalpah: 0.5\n")
+    message = assert_error(capsys, "refine", ["refine", "--config", recipe, "--out", tmp_path / "o"],
+                           "unknown key(s) ['alpah']")
+    assert "alpha" in message  # lists the allowed keys
+    assert not (tmp_path / "o").exists()
+
+
+def test_recipe_missing(capsys, tmp_path):
+    assert_error(capsys, "refine", ["refine", "--config", tmp_path / "none.yaml"], "cannot read recipe")
+
+
+def test_missing_dataset(capsys, tmp_path):
+    assert_error(capsys, "refine", ["refine", "--events", "door", "--out", tmp_path / "o"], "missing --dataset")
+
+
+def test_missing_everything(capsys):
+    message = assert_error(capsys, "refine", ["refine"], "missing")
+    for flag in ("--dataset", "--events", "--out"):
+        assert flag in message
+
+
+def test_dataset_file_does_not_exist(capsys, tmp_path):
+    assert_error(capsys, "refine",
+                 ["refine", "--dataset", tmp_path / "nope.hdf5", "--events", "door", "--out", tmp_path / "o"],
+                 "does not exist")
+
+
+def test_constraint_making_every_order_score_zero(capsys, tmp_path, tiny):
+    out = tmp_path / "o"
+    message = assert_error(
+        capsys, "refine",
+        ["refine", "--dataset", tiny, "--events", "door", "--constraint", "door_1.35<reach_handle", "--out", out],
+        "every event order scores 0")
+    assert "constraints" in message
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_constraint_unknown_event(capsys, tmp_path, tiny):
+    assert_error(capsys, "refine",
+                 ["refine", "--dataset", tiny, "--events", "door", "--constraint", "handle<door_0.2", "--out",
+                  tmp_path / "o"],
+                 "unknown event 'handle'")
+
+
+def test_dataset_where_no_event_happens(capsys, tmp_path, no_events):
+    out = tmp_path / "o"
+    message = assert_error(capsys, "refine", ["refine", "--dataset", no_events, "--events", "door", "--out", out],
+                           "no event")
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
+    # inspect still works on it and shows that nothing fires
+    code, text, _ = run(capsys, "inspect", "--dataset", no_events, "--events", "door", "--json")
+    assert code == 0
+    assert all(s["episodes_firing"] == 0 for s in json.loads(text))
+
+
+# --------------------------------------------------------------------------------------------
+# The console script
+# --------------------------------------------------------------------------------------------
+
+def test_console_script_error_exit_code(tmp_path, tiny):
+    exe = Path(sys.executable).parent / "rmrl"
+    exe = str(exe) if exe.exists() else shutil.which("rmrl")
+    if exe is None:
+        pytest.skip("the rmrl console script is not installed")
+    out = tmp_path / "o"
+    proc = subprocess.run([exe, "refine", "--dataset", tiny, "--events", "door", "--alpha", "1.5", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc
+    assert proc.stdout == ""
+    assert proc.stderr == "rmrl refine: error: alpha must lie in (0, 1], got 1.5\n"
+    assert not out.exists()

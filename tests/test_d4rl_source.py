@@ -1,0 +1,454 @@
+"""load_d4rl_hdf5 / episode_end_flags on tiny D4RL-format HDF5 files built here, and on the real files.
+
+The tiny files encode (episode, step) in the observation: ``obs[t] = [1000 * episode + t, t, ...]``,
+so within an episode the observation moves by about 1 per step and between episodes it jumps by
+about 1000 (a "real" boundary for ``episode_ends="auto"``). Actions and rewards encode the row, so
+any shift between observation, action and reward shows up.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from rm_torchrl.data.d4rl import episode_end_flags, load_d4rl_hdf5
+from rm_torchrl.errors import RMError
+
+D4RL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl"
+DOOR = D4RL / "door-human-v0.hdf5"
+KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
+
+DOOR_LENGTHS = [300] * 5 + [293, 284, 265, 265, 291, 247, 236, 271, 242, 277, 257, 260, 223, 257, 277, 288, 289,
+                            256, 226, 225]
+
+
+def steps_of(lengths):
+    """Observations (N, 3), actions (N, 2), rewards (N,) and the row index of each episode's last step."""
+    obs, ep_of_row = [], []
+    for e, T in enumerate(lengths):
+        t = np.arange(T, dtype=np.float32)
+        obs.append(np.stack([1000.0 * e + t, t, np.full(T, e, np.float32)], -1))
+        ep_of_row += [e] * T
+    obs = np.concatenate(obs).astype(np.float32)
+    n = obs.shape[0]
+    rows = np.arange(n, dtype=np.float32)
+    actions = np.stack([rows, -rows], -1).astype(np.float32)
+    rewards = (0.5 * rows).astype(np.float32)
+    last = np.cumsum(lengths) - 1
+    return obs, actions, rewards, last
+
+
+def write_h5(path, obs, actions, rewards, terminals=None, timeouts=None, skip=(), **extra):
+    n = len(obs)
+    arrays = {
+        "observations": obs,
+        "actions": actions,
+        "rewards": rewards,
+        "terminals": np.zeros(n, bool) if terminals is None else terminals,
+        "timeouts": np.zeros(n, bool) if timeouts is None else timeouts,
+        **extra,
+    }
+    with h5py.File(path, "w") as f:
+        for k, v in arrays.items():
+            if k not in skip and v is not None:
+                f.create_dataset(k, data=v)
+    return path
+
+
+def flags(n, rows):
+    out = np.zeros(n, bool)
+    out[np.asarray(rows, dtype=int)] = True
+    return out
+
+
+def make_file(tmp_path, lengths, ends="terminals", name="d.hdf5", **kw):
+    """A file whose episodes of ``lengths`` steps end with ``ends`` flags (terminals / timeouts / none)."""
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    term = flags(n, last) if ends == "terminals" else np.zeros(n, bool)
+    tout = flags(n, last) if ends == "timeouts" else np.zeros(n, bool)
+    kw.setdefault("terminals", term)
+    kw.setdefault("timeouts", tout)
+    return write_h5(tmp_path / name, obs, actions, rewards, **kw), (obs, actions, rewards, last)
+
+
+# --------------------------------------------------------------------------------------------
+# Shapes and alignment
+# --------------------------------------------------------------------------------------------
+
+def test_t_steps_give_t_minus_one_transitions_per_episode(tmp_path):
+    lengths = [5, 7, 4]
+    path, _ = make_file(tmp_path, lengths)
+    td = load_d4rl_hdf5(path)
+    assert td.batch_size == torch.Size([sum(lengths) - len(lengths)])
+    counts = torch.bincount(td["episode"]).tolist()
+    assert counts == [T - 1 for T in lengths]
+    assert td["episode"].dtype == torch.int64
+    # episodes are contiguous runs 0, 1, 2
+    assert torch.equal(td["episode"], torch.repeat_interleave(torch.arange(3), torch.tensor(counts)))
+
+
+def test_keys_dtypes_shapes(tmp_path):
+    path, _ = make_file(tmp_path, [5, 6])
+    td = load_d4rl_hdf5(path)
+    n = 4 + 5
+    assert td["observation"].shape == (n, 3) and td["observation"].dtype == torch.float32
+    assert td["next", "observation"].shape == (n, 3)
+    assert td["action"].shape == (n, 2) and td["action"].dtype == torch.float32
+    assert td["next", "reward"].shape == (n, 1) and td["next", "reward"].dtype == torch.float32
+    for key in ("terminated", "truncated", "done"):
+        assert td["next", key].shape == (n, 1) and td["next", key].dtype == torch.bool
+
+
+def test_alignment_of_obs_next_obs_action_reward(tmp_path):
+    lengths = [5, 7, 4]
+    path, (obs, actions, rewards, last) = make_file(tmp_path, lengths)
+    td = load_d4rl_hdf5(path)
+    # the rows that start a transition: every row except each episode's last step
+    rows = np.setdiff1d(np.arange(len(obs)), last)
+    np.testing.assert_array_equal(td["observation"].numpy(), obs[rows])
+    np.testing.assert_array_equal(td["next", "observation"].numpy(), obs[rows + 1])
+    np.testing.assert_array_equal(td["action"].numpy(), actions[rows])            # action[t]
+    np.testing.assert_array_equal(td["next", "reward"].numpy()[:, 0], rewards[rows])  # reward[t]
+    # no transition crosses an episode boundary: both ends carry the same episode id
+    assert (td["observation"][:, 2] == td["next", "observation"][:, 2]).all()
+    assert torch.equal(td["observation"][:, 2].long(), td["episode"])
+    # and inside an episode the step counter moves by exactly one
+    assert (td["next", "observation"][:, 1] - td["observation"][:, 1] == 1).all()
+
+
+# --------------------------------------------------------------------------------------------
+# terminated / truncated / done
+# --------------------------------------------------------------------------------------------
+
+def _last_of_each_episode(td):
+    ep = td["episode"]
+    is_last = torch.ones_like(ep, dtype=torch.bool)
+    is_last[:-1] = ep[1:] != ep[:-1]
+    return is_last
+
+
+def test_timeout_ended_episodes_are_truncated_not_terminated(tmp_path):
+    path, _ = make_file(tmp_path, [5, 7, 4], ends="timeouts")
+    td = load_d4rl_hdf5(path)
+    last = _last_of_each_episode(td)
+    assert torch.equal(td["next", "truncated"][:, 0], last)
+    assert not td["next", "terminated"].any()
+    assert torch.equal(td["next", "done"], td["next", "terminated"] | td["next", "truncated"])
+
+
+def test_terminated_copies_the_terminal_flag_of_the_step(tmp_path):
+    """Episodes end at timeouts; a terminal flag inside an episode is copied to the transition of that step."""
+    lengths = [6, 6]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(n, [2, 8]), timeouts=flags(n, last))
+    td = load_d4rl_hdf5(path, episode_ends="timeouts")
+    assert td.batch_size[0] == 10
+    rows = np.setdiff1d(np.arange(n), last)
+    expected_term = flags(n, [2, 8])[rows]
+    np.testing.assert_array_equal(td["next", "terminated"].numpy()[:, 0], expected_term)
+    # the last transition of each (non-terminal) episode is truncated, nothing else is
+    assert torch.equal(td["next", "truncated"][:, 0], _last_of_each_episode(td))
+    assert torch.equal(td["next", "done"], td["next", "terminated"] | td["next", "truncated"])
+
+
+def test_terminal_ended_episode_last_transition_is_terminated(tmp_path):
+    path, _ = make_file(tmp_path, [5, 7, 4], ends="terminals")
+    td = load_d4rl_hdf5(path, episode_ends="terminals")
+    last = _last_of_each_episode(td)
+    assert torch.equal(td["next", "terminated"][:, 0], last)
+    assert not td["next", "truncated"].any()
+    assert torch.equal(td["next", "done"], td["next", "terminated"])
+
+
+def test_terminal_and_timeout_ended_episodes_mixed(tmp_path):
+    """Episodes 0 and 2 end in a terminal, episode 1 in a timeout, the last one at the data end."""
+    lengths = [5, 7, 4, 3]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(n, [last[0], last[2]]),
+                    timeouts=flags(n, [last[1]]))
+    td = load_d4rl_hdf5(path)
+    ends = _last_of_each_episode(td)
+    ep_end = td["episode"][ends].tolist()
+    assert ep_end == [0, 1, 2, 3]
+    assert td["next", "terminated"][ends, 0].tolist() == [True, False, True, False]
+    assert td["next", "truncated"][ends, 0].tolist() == [False, True, False, True]
+    assert not td["next", "done"][~ends].any()
+
+
+def test_done_marks_exactly_the_last_transition_of_each_episode(tmp_path):
+    for ends in ("terminals", "timeouts"):
+        path, _ = make_file(tmp_path, [5, 7, 4], ends=ends, name=f"{ends}.hdf5")
+        td = load_d4rl_hdf5(path)
+        assert torch.equal(td["next", "done"][:, 0], _last_of_each_episode(td)), ends
+        assert torch.equal(td["next", "done"], td["next", "terminated"] | td["next", "truncated"]), ends
+
+
+def test_data_ending_without_a_flag(tmp_path):
+    """The last episode has no flag at its end: it still ends there, truncated."""
+    lengths = [5, 7, 4]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(n, last[:-1]))
+    td = load_d4rl_hdf5(path)
+    assert td.batch_size[0] == sum(lengths) - 3
+    assert torch.bincount(td["episode"]).tolist() == [4, 6, 3]
+    assert bool(td["next", "truncated"][-1]) and not bool(td["next", "terminated"][-1])
+    assert bool(td["next", "done"][-1])
+    np.testing.assert_array_equal(td["next", "observation"][-1].numpy(), obs[-1])
+
+
+def test_no_flags_at_all_is_one_episode(tmp_path):
+    path, (obs, *_) = make_file(tmp_path, [9], ends="none")
+    td = load_d4rl_hdf5(path)
+    assert td.batch_size[0] == 8
+    assert (td["episode"] == 0).all()
+    assert td["next", "done"][:, 0].tolist() == [False] * 7 + [True]
+
+
+def test_missing_timeouts_dataset_is_fine(tmp_path):
+    path, _ = make_file(tmp_path, [5, 7], skip=("timeouts",))
+    td = load_d4rl_hdf5(path)
+    assert torch.bincount(td["episode"]).tolist() == [4, 6]
+
+
+# --------------------------------------------------------------------------------------------
+# episode_ends
+# --------------------------------------------------------------------------------------------
+
+def _both_kinds(tmp_path, name="d.hdf5"):
+    """Episodes 0 and 2 end with terminals, episode 1 with a timeout."""
+    lengths = [5, 7, 4]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    term = flags(n, [last[0], last[2]])
+    tout = flags(n, [last[1]])
+    return write_h5(tmp_path / name, obs, actions, rewards, terminals=term, timeouts=tout), lengths
+
+
+def test_episode_ends_both_terminals_timeouts(tmp_path):
+    path, lengths = _both_kinds(tmp_path)
+    both = load_d4rl_hdf5(path, episode_ends="both")
+    assert torch.bincount(both["episode"]).tolist() == [4, 6, 3]
+    # terminals only: episodes 1 and 2 are one episode of 11 steps
+    term = load_d4rl_hdf5(path, episode_ends="terminals")
+    assert torch.bincount(term["episode"]).tolist() == [4, 10]
+    # timeouts only: episodes 0 and 1 merge (12 steps), episode 2 ends at the data end
+    tout = load_d4rl_hdf5(path, episode_ends="timeouts")
+    assert torch.bincount(tout["episode"]).tolist() == [11, 3]
+    auto = load_d4rl_hdf5(path)
+    assert (auto == both).all()
+
+
+def test_auto_ignores_misplaced_timeouts(tmp_path):
+    """Like door-human-v0: terminals sit at episode ends, timeouts in the middle of episodes."""
+    lengths = [8, 9, 7]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    tout = flags(n, last - 3)  # three steps before every end: no jump after them
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(n, last), timeouts=tout)
+    td = load_d4rl_hdf5(path)
+    assert torch.bincount(td["episode"]).tolist() == [7, 8, 6]
+    assert (td == load_d4rl_hdf5(path, episode_ends="terminals")).all()
+    # taken literally, "both" cuts the episodes at the misplaced timeouts too
+    assert load_d4rl_hdf5(path, episode_ends="both")["episode"].max() == 5
+    _, used = episode_end_flags(obs, flags(n, last), tout, "auto")
+    assert used == "terminals"
+
+
+def test_auto_ignores_misplaced_terminals(tmp_path):
+    lengths = [8, 9, 7]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    term = flags(n, [2, 11])  # mid-episode
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=term, timeouts=flags(n, last))
+    td = load_d4rl_hdf5(path)
+    assert torch.bincount(td["episode"]).tolist() == [7, 8, 6]
+    _, used = episode_end_flags(obs, term, flags(n, last), "auto")
+    assert used == "timeouts"
+
+
+def test_episode_end_flags_modes():
+    obs, _, _, last = steps_of([4, 5, 3])
+    n = len(obs)
+    term, tout = flags(n, last[:2]), flags(n, [last[2]])
+    for mode, expected in (("both", term | tout), ("terminals", term), ("timeouts", tout)):
+        got, used = episode_end_flags(obs, term, tout, mode)
+        assert used == mode
+        np.testing.assert_array_equal(got, expected)
+    got, used = episode_end_flags(obs, term, tout, "auto")
+    assert used == "both"
+    np.testing.assert_array_equal(got, term | tout)
+
+
+def test_auto_raises_when_no_flags_are_consistent(tmp_path):
+    lengths = [8, 9, 7]
+    obs, actions, rewards, last = steps_of(lengths)
+    n = len(obs)
+    term, tout = flags(n, [2, 11]), flags(n, [4, 13])  # both mid-episode
+    with pytest.raises(RMError, match="neither terminals nor timeouts"):
+        episode_end_flags(obs, term, tout, "auto")
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=term, timeouts=tout)
+    with pytest.raises(RMError, match="episode_ends"):
+        load_d4rl_hdf5(path)
+    # an explicit choice is taken as given
+    assert load_d4rl_hdf5(path, episode_ends="terminals")["episode"].max() == 2
+
+
+@pytest.mark.parametrize("mode", ["Auto", "terminal", "", None, "all"])
+def test_unknown_episode_ends(tmp_path, mode):
+    path, (obs, *_) = make_file(tmp_path, [5, 6])
+    with pytest.raises(RMError, match="episode_ends must be one of"):
+        load_d4rl_hdf5(path, episode_ends=mode)
+    n = len(obs)
+    with pytest.raises(RMError, match="episode_ends must be one of"):
+        episode_end_flags(obs, np.zeros(n, bool), np.zeros(n, bool), mode)
+
+
+# --------------------------------------------------------------------------------------------
+# Errors
+# --------------------------------------------------------------------------------------------
+
+def test_missing_file(tmp_path):
+    with pytest.raises(RMError, match="does not exist"):
+        load_d4rl_hdf5(tmp_path / "nope.hdf5")
+
+
+def test_directory_is_not_a_file(tmp_path):
+    with pytest.raises(RMError, match="does not exist"):
+        load_d4rl_hdf5(tmp_path)
+
+
+def test_not_an_hdf5_file(tmp_path):
+    path = tmp_path / "fake.hdf5"
+    path.write_text("observations,actions\n1,2\n")
+    with pytest.raises(RMError, match="not a readable HDF5 file"):
+        load_d4rl_hdf5(path)
+
+
+def test_zero_byte_file(tmp_path):
+    path = tmp_path / "zero.hdf5"
+    path.write_bytes(b"")
+    with pytest.raises(RMError, match="not a readable HDF5 file"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("missing", ["observations", "actions", "rewards", "terminals"])
+def test_missing_array(tmp_path, missing):
+    path, _ = make_file(tmp_path, [5, 6], skip=(missing,))
+    with pytest.raises(RMError, match=rf"no '{missing}' array"):
+        load_d4rl_hdf5(path)
+
+
+def test_hdf5_without_any_dataset(tmp_path):
+    path = tmp_path / "empty.hdf5"
+    with h5py.File(path, "w"):
+        pass
+    with pytest.raises(RMError, match="not a D4RL dataset.*'observations'"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("short", ["actions", "rewards", "terminals", "timeouts"])
+def test_mismatched_lengths(tmp_path, short):
+    obs, actions, rewards, last = steps_of([5, 6])
+    n = len(obs)
+    arrays = {"actions": actions, "rewards": rewards, "terminals": flags(n, last), "timeouts": np.zeros(n, bool)}
+    arrays[short] = arrays[short][:-2]
+    path = write_h5(tmp_path / "d.hdf5", obs, **arrays)
+    with pytest.raises(RMError, match=rf"{short} has {n - 2} rows but observations has {n}"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_observations(tmp_path, bad):
+    obs, actions, rewards, last = steps_of([5, 6])
+    obs[7, 1] = bad
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(len(obs), last))
+    with pytest.raises(RMError, match=r"NaN or inf at rows \[7\]"):
+        load_d4rl_hdf5(path)
+
+
+def test_empty_arrays(tmp_path):
+    path = write_h5(tmp_path / "d.hdf5", np.zeros((0, 3), np.float32), np.zeros((0, 2), np.float32),
+                    np.zeros(0, np.float32), terminals=np.zeros(0, bool), timeouts=np.zeros(0, bool))
+    with pytest.raises(RMError, match="holds no steps"):
+        load_d4rl_hdf5(path)
+
+
+def test_one_dimensional_observations(tmp_path):
+    obs, actions, rewards, last = steps_of([5, 6])
+    path = write_h5(tmp_path / "d.hdf5", obs[:, 0], actions, rewards, terminals=flags(len(obs), last))
+    with pytest.raises(RMError, match="must be 2-D"):
+        load_d4rl_hdf5(path)
+
+
+def test_single_step_episodes_only(tmp_path):
+    obs, actions, rewards, _ = steps_of([1, 1, 1, 1])
+    n = len(obs)
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=np.ones(n, bool))
+    with pytest.raises(RMError, match="every episode has a single step"):
+        load_d4rl_hdf5(path, episode_ends="terminals")
+
+
+def test_single_row_file(tmp_path):
+    obs, actions, rewards, _ = steps_of([1])
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards)
+    with pytest.raises(RMError, match="single step"):
+        load_d4rl_hdf5(path)
+
+
+def test_single_step_episodes_are_dropped_among_longer_ones(tmp_path):
+    path, _ = make_file(tmp_path, [4, 1, 3, 1])
+    td = load_d4rl_hdf5(path, episode_ends="terminals")
+    assert torch.bincount(td["episode"]).tolist() == [3, 2]  # ids stay contiguous
+    assert (td["observation"][:, 2].unique() == torch.tensor([0.0, 2.0])).all()
+
+
+# --------------------------------------------------------------------------------------------
+# The real D4RL files
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} not available")
+def test_real_door_human_v0():
+    td = load_d4rl_hdf5(DOOR)
+    assert td.batch_size[0] == 6704
+    counts = torch.bincount(td["episode"]).tolist()
+    assert len(counts) == 25
+    assert counts == [T - 1 for T in DOOR_LENGTHS]
+    assert td["observation"].shape == (6704, 39) and td["action"].shape == (6704, 28)
+    assert int(td["next", "done"].sum()) == 25
+    # every episode ends at its terminal flag
+    assert torch.equal(td["next", "terminated"], td["next", "done"])
+    assert torch.equal(td["next", "done"][:, 0], _last_of_each_episode(td))
+    with h5py.File(DOOR, "r") as f:
+        obs, term, tout = f["observations"][()], f["terminals"][()].astype(bool), f["timeouts"][()].astype(bool)
+    _, used = episode_end_flags(obs, term, tout, "auto")
+    assert used == "terminals"
+    assert (td == load_d4rl_hdf5(DOOR, episode_ends="terminals")).all()
+    # the misplaced timeouts taken literally would cut the episodes elsewhere
+    assert torch.bincount(load_d4rl_hdf5(DOOR, episode_ends="timeouts")["episode"]).tolist() != counts
+
+
+@pytest.mark.skipif(not KITCHEN.is_file(), reason=f"{KITCHEN} not available")
+def test_real_kitchen_complete_v0():
+    td = load_d4rl_hdf5(KITCHEN)
+    assert td.batch_size[0] == 3661
+    counts = torch.bincount(td["episode"])
+    assert counts.numel() == 19
+    assert 181 <= int(counts.min()) and int(counts.max()) <= 206
+    assert td["observation"].shape == (3661, 60) and td["action"].shape == (3661, 9)
+    assert int(td["next", "done"].sum()) == 19
+    assert torch.equal(td["next", "terminated"], td["next", "done"])
+    with h5py.File(KITCHEN, "r") as f:
+        obs, rew = f["observations"][()], f["rewards"][()]
+        term = f["terminals"][()].astype(bool)
+    last = np.flatnonzero(term)
+    rows = np.setdiff1d(np.arange(len(obs)), last)
+    np.testing.assert_array_equal(td["observation"].numpy(), obs[rows])
+    np.testing.assert_array_equal(td["next", "observation"].numpy(), obs[rows + 1])
+    np.testing.assert_array_equal(td["next", "reward"].numpy()[:, 0], rew[rows].astype(np.float32))
