@@ -18,13 +18,16 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import torch
-from tensordict import TensorDict
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as the rmrl command does; recorded in the JSON
+
+import torch  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -100,6 +103,7 @@ def main() -> None:
         "events": len(report.events),
         "alpha": args.alpha,
         "threads": torch.get_num_threads(),
+        "THP_MEM_ALLOC_ENABLE": os.environ["THP_MEM_ALLOC_ENABLE"],
         "stages": report.stages,
         "seconds": {
             "pipeline": round(t_pipeline, 4),

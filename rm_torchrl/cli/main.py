@@ -2,10 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-from rm_torchrl.data.d4rl import EPISODE_ENDS
-from rm_torchrl.errors import RMError
+# Back large CPU tensors with transparent huge pages: refinement allocates a few big tensors,
+# and first-touch page faults would otherwise cost as much as the work itself.
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+from rm_torchrl.data.d4rl import EPISODE_ENDS  # noqa: E402
+from rm_torchrl.errors import RMError  # noqa: E402
 
 
 def _constraint(text: str) -> tuple[str, str]:

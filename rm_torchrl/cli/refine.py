@@ -12,7 +12,7 @@ from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.store import write_refined
 from rm_torchrl.errors import RMError, yaml_problem
 from rm_torchrl.events.spec import load_event_spec
-from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline
+from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, run_pipeline
 from rm_torchrl.refine.shortest import check_alpha
 
 #: Recipe keys and their defaults (None: required).
@@ -22,11 +22,14 @@ RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "a
 def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
     """Runs the pipeline stage by stage under a progress bar; returns ``(refined, report)``."""
     pipeline = make_refine_pipeline(spec, float(check_alpha(alpha)), constraints)
-    with tqdm(pipeline.transforms, desc=desc, unit="stage", file=sys.stderr, leave=False) as bar:
-        for stage in bar:
+    with tqdm(total=len(pipeline.transforms), desc=desc, unit="stage", file=sys.stderr, leave=False) as bar:
+
+        def on_stage(stage):
             bar.set_postfix_str(type(stage).__name__)
-            data = stage(data)
-    return data, RefineReport.from_pipeline(pipeline)
+            bar.update()
+
+        refined = run_pipeline(pipeline, data, on_stage)
+    return refined, RefineReport.from_pipeline(pipeline)
 
 
 def load_recipe(path: str) -> dict:

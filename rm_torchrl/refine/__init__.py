@@ -1,7 +1,7 @@
 """Dataset refinement stages (paper sections 3.2-3.4) as composable TorchRL transforms."""
 from rm_torchrl.refine.label import LabelRM
 from rm_torchrl.refine.order import EventOrder, best_event_order
-from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, refine, refine_replay_buffer
+from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, refine, refine_replay_buffer, run_pipeline
 from rm_torchrl.refine.relabel import CounterfactualRelabel
 from rm_torchrl.refine.shortest import KeepShortest
 from rm_torchrl.refine.splice import Splice
@@ -18,5 +18,6 @@ __all__ = [
     "make_refine_pipeline",
     "refine",
     "refine_replay_buffer",
+    "run_pipeline",
     "RefineReport",
 ]

@@ -19,6 +19,12 @@ class DatasetTransform(Transform):
     def __init__(self, in_keys, out_keys):
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.stats: dict = {}
+        self.optional_keys: list = []  # read when present
+
+    @property
+    def keys_used(self) -> list:
+        """Every key this stage reads or writes."""
+        return [*self.in_keys, *self.out_keys, *self.optional_keys]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.batch_dims != 1:

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Callable, Iterable
+
+import torch
 
 from tensordict import TensorDictBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
@@ -11,6 +13,7 @@ from torchrl.envs.transforms import Compose
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.label import LabelRM
+from rm_torchrl.refine.base import take_rows
 from rm_torchrl.refine.order import EventOrder
 from rm_torchrl.refine.relabel import CounterfactualRelabel
 from rm_torchrl.refine.shortest import KeepShortest
@@ -110,10 +113,45 @@ def _count_episodes(relabel: CounterfactualRelabel) -> int:
     return relabel.stats.get("episodes", 0)
 
 
+_ROW = "_refine_row"
+
+
+def run_pipeline(pipeline: Compose, data: TensorDictBase, on_stage: Callable | None = None) -> TensorDictBase:
+    """``pipeline(data)`` with the wide columns gathered once, at the end, instead of at every stage.
+
+    The first stage sees everything (labelling reads the observations); the later ones get only
+    the columns they use plus a row index, and the rest of each kept row is fetched at the end.
+    The result equals ``pipeline(data.copy())``. ``on_stage(stage)`` is called before each stage.
+    """
+    stages = list(pipeline.transforms)
+    td = data.copy()
+    if not stages:
+        return td
+    if on_stage:
+        on_stage(stages[0])
+    td = stages[0](td)
+    used = {_key(k) for stage in stages[1:] for k in getattr(stage, "keys_used", stage.in_keys + stage.out_keys)}
+    present = [k for k in td.keys(include_nested=True, leaves_only=True) if _key(k) in used]
+    light = td.select(*present)
+    light.set(_ROW, torch.arange(td.batch_size[0]))
+    heavy = td.exclude(*present)
+    for stage in stages[1:]:
+        if on_stage:
+            on_stage(stage)
+        light = stage(light)
+    out = take_rows(heavy, light.pop(_ROW))
+    out.update(light)
+    return out
+
+
+def _key(key) -> tuple:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
 def refine(data: TensorDictBase, events: EventSpec | str, alpha: float = 1.0, constraints: Iterable = ()):
     """Refine a flat dataset of transitions; returns ``(refined, report)``. ``data`` is not modified."""
     pipeline = make_refine_pipeline(events, alpha, constraints)
-    refined = pipeline(data.copy())
+    refined = run_pipeline(pipeline, data)
     return refined, RefineReport.from_pipeline(pipeline)
 
 
@@ -123,8 +161,7 @@ def refine_replay_buffer(
     """A new buffer holding the refined content of ``buffer`` (memory-mapped under ``scratch_dir`` if given)."""
     if len(buffer) == 0:
         raise RMError("the replay buffer is empty: there is nothing to refine")
-    data = buffer.storage[: len(buffer)]
-    refined = pipeline(data.copy())
+    refined = run_pipeline(pipeline, buffer.storage[: len(buffer)])
     if scratch_dir is None:
         storage = LazyTensorStorage(refined.numel())
     else:

@@ -22,8 +22,12 @@ class CounterfactualRelabel(DatasetTransform):
     def __init__(self, episode_key="episode", rm_key="rm_state", reward_key="reward"):
         super().__init__(
             in_keys=["subtrajectory", "group_rank", "group_to", rm_key],
-            out_keys=[rm_key, ("next", rm_key), ("next", reward_key), episode_key],
+            out_keys=[
+                rm_key, ("next", rm_key), ("next", reward_key), ("next", "env_reward"),
+                ("next", "terminated"), ("next", "truncated"), ("next", "done"), episode_key, "source_episode",
+            ],
         )
+        self.optional_keys = [("next", reward_key), episode_key]
         self.episode_key, self.rm_key, self.reward_key = episode_key, rm_key, reward_key
 
     def _refine(self, td: TensorDictBase) -> TensorDictBase:
