@@ -319,3 +319,10 @@ def test_numpy_alpha_accepted():
     import numpy as np
 
     assert check_alpha(np.float32(0.5)) == check_alpha(0.5)
+
+
+def test_index_string_is_a_slice():
+    spec = EventSpec.from_dict({"events": [{"name": "a", "index": "1:3", "reduce": "norm", "op": "<", "value": 1}]})
+    assert spec.events[0].slice == (1, 3) and spec.events[0].index is None
+    with pytest.raises(RMError, match="'index' must be"):
+        EventSpec.from_dict({"events": [{"name": "a", "index": "1-3", "op": "<", "value": 1}]})

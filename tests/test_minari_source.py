@@ -213,3 +213,24 @@ def test_single_episode_dataset_is_an_rm_error(minari_cache):
     _write_dataset("tiny/one-v0", schedule=[(4, "terminated")])
     with pytest.raises(RMError, match="at least 2"):
         load_minari("tiny/one-v0")
+
+
+def test_rmrl_refine_reads_a_local_minari_dataset(minari_cache, tmp_path):
+    """The whole CLI path on a dict-observation dataset: nested event keys, target_key, minari: prefix."""
+    import json
+
+    from rm_torchrl.cli.main import main
+
+    _write_dataset("tiny/dict-v0", dict_obs=True)
+    spec = tmp_path / "events.yaml"
+    spec.write_text(
+        "events:\n"
+        "  - {name: microwave, key: [observation, achieved_goal, microwave],\n"
+        "     target_key: [observation, desired_goal, microwave], reduce: norm, op: '<', value: 0.5}\n"
+    )
+    for source, out in (("tiny/dict-v0", "a"), ("minari:tiny/dict-v0", "b")):
+        assert main(["refine", "--dataset", source, "--events", str(spec), "--out", str(tmp_path / out)]) == 0
+        report = json.loads((tmp_path / out / "report.json").read_text())
+        # microwave (100 * episode + t) reaches its goal 1.0 only at t = 1 of episode 0
+        assert report["stages"] == {"original": TOTAL_STEPS, "split": 1, "ordered": 1, "shorter": 1}
+        assert report["groups"] == {"e0->microwave": 1}

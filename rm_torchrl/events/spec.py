@@ -13,6 +13,7 @@ Plain Python callables ``f(observation_td) -> bool tensor (...)`` can stand in f
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence, Union
@@ -93,6 +94,9 @@ class Event:
         if "index" in d and "slice" in d:
             raise RMError(f"{where}: give either 'index' or 'slice', not both")
         index = d.get("index")
+        if isinstance(index, str) and re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", index) and "slice" not in d:
+            d = {**d, "slice": [int(x) for x in index.split(":")]}
+            index = None
         if index is not None:
             index = (index,) if _is_int(index) else index
             if not (isinstance(index, (list, tuple)) and index and all(_is_int(i) for i in index)):
