@@ -54,6 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of standard output")
     p.set_defaults(run="rm_torchrl.cli.graph:run")
 
+    p = sub.add_parser("train", help="train offline from a recipe (refine, IQL + weight decay, online eval)")
+    p.add_argument("recipe", help="a recipe YAML (recipes/*.yaml)")
+    p.add_argument("overrides", nargs="*", help="key.sub=value overrides, e.g. trainer.steps=2000 seed=3")
+    p.add_argument("-m", "--multirun", action="store_true", help="run the grid of comma-separated overrides")
+    p.add_argument("--jobs", type=int, default=2, help="parallel runs with --multirun (default: 2 cores)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(run="rm_torchrl.cli.train:run")
+
     p = sub.add_parser("demo", help="build a door-like dataset here and refine it (no download)")
     p.add_argument("--transitions", type=int, default=200_000)
     p.add_argument("--alpha", default="0.5")

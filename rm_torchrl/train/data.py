@@ -1,0 +1,87 @@
+"""The training set of a recipe: raw or refined transitions, with what the policy reads."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from rm_torchrl.data.sources import load_dataset
+from rm_torchrl.errors import RMError
+from rm_torchrl.events.spec import load_event_spec
+from rm_torchrl.refine.pipeline import refine
+from rm_torchrl.rm.machine import EventOrderedRM
+from rm_torchrl.train.config import Recipe
+
+ENCODING_KEY = "rm_encoding"
+_DONE_KEYS = ("reward", "done", "terminated")
+
+
+@dataclass
+class TrainingData:
+    buffer: TensorDictReplayBuffer  # contiguous storage of the transitions the losses read
+    obs_keys: list  # what the networks read: observation (+ RM encoding)
+    obs_dim: int
+    action_dim: int
+    loc: torch.Tensor  # observation normalisation, shared with the evaluation env
+    scale: torch.Tensor
+    report: dict | None  # the refinement report, when the data was refined
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> TensorDictBase:
+        """A uniform batch, gathered by index from the contiguous storage (no sampler overhead)."""
+        data = self.buffer.storage._storage
+        n = len(self.buffer)
+        rows = torch.randint(n, (batch_size,), generator=generator)
+        return data.apply(lambda x: x.index_select(0, rows), batch_size=[batch_size])
+
+
+def _flat_observation(obs) -> torch.Tensor:
+    """The vector the policy reads: the observation, or the ``observation`` entry of a dict one."""
+    if isinstance(obs, TensorDictBase):
+        if "observation" not in obs.keys():
+            raise RMError("dict observations need an 'observation' entry for the policy to read")
+        obs = obs.get("observation")
+    return obs.float()
+
+
+def prepare_data(recipe: Recipe) -> TrainingData:
+    """Loads (and refines) the dataset, adds the RM encoding and fills a replay buffer."""
+    raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
+    report = None
+    use_rm = recipe.data.refine
+    if use_rm:
+        data, rep = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints)
+        report = rep.to_dict()
+    else:
+        data = raw
+    columns = {
+        "observation": _flat_observation(data.get("observation")),
+        "action": data.get("action").float(),
+        "next": {"observation": _flat_observation(data.get(("next", "observation")))},
+    }
+    for key in _DONE_KEYS:
+        if ("next", key) not in data.keys(True):
+            raise RMError(f"the dataset has no ('next', {key!r}) entry")
+        columns["next"][key] = data.get(("next", key))
+    columns["next"]["reward"] = columns["next"]["reward"].float()
+    obs_keys = ["observation"]
+    if use_rm:
+        rm = EventOrderedRM(load_event_spec(recipe.data.events).names)
+        columns[ENCODING_KEY] = rm.encode(data.get("rm_state"), recipe.rm.encoding)
+        columns["next"][ENCODING_KEY] = rm.encode(data.get(("next", "rm_state")), recipe.rm.encoding)
+        obs_keys.append(ENCODING_KEY)
+    td = TensorDict(columns, batch_size=data.batch_size)
+    obs = td.get("observation")
+    if not torch.isfinite(obs).all() or not torch.isfinite(td.get("action")).all():
+        raise RMError("the training data holds NaN or inf observations or actions")
+    if recipe.trainer.normalize_obs:
+        loc, scale = obs.mean(0), obs.std(0).clamp_min(1e-3)
+    else:
+        loc, scale = torch.zeros(obs.shape[-1]), torch.ones(obs.shape[-1])
+    for key in ("observation", ("next", "observation")):
+        td.set(key, (td.get(key) - loc) / scale)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(td.batch_size[0]), batch_size=recipe.trainer.batch_size)
+    buffer.extend(td)
+    obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
+    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report)

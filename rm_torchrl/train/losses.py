@@ -1,0 +1,91 @@
+"""The loss of each method, its optimisers (with the paper's weight decay) and its eval policy."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import CQLLoss, IQLLoss, LossModule, SoftUpdate
+
+from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
+
+
+class BCLoss(LossModule):
+    """Behaviour cloning: the negative log-likelihood of the dataset action under the policy."""
+
+    def __init__(self, actor_network: ProbabilisticActor):
+        super().__init__()
+        self.convert_to_functional(actor_network, "actor_network")
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        with self.actor_network_params.to_module(self.actor_network):
+            dist = self.actor_network.get_dist(tensordict)
+        action = tensordict.get("action").clamp(-1 + 1e-5, 1 - 1e-5)
+        return TensorDict({"loss_actor": -dist.log_prob(action).mean()})
+
+
+@dataclass
+class Method:
+    loss: LossModule
+    optimizers: list  # one per parameter group, stepped together
+    policy: TensorDictModule  # acts from the observation keys at evaluation
+    target_updater: SoftUpdate | None
+
+
+def _adam(params, lr: float, weight_decay: float, recipe: Recipe) -> torch.optim.Optimizer:
+    """Eq. 7-8: an L2 penalty lambda*||w||^2 has gradient 2*lambda*w, Adam's coupled weight_decay."""
+    params = [p for p in params if p.requires_grad]
+    fused = recipe.optim.fused
+    if recipe.optim.decay == "decoupled":
+        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=fused)
+    return torch.optim.Adam(params, lr=lr, weight_decay=2 * weight_decay, fused=fused)
+
+
+def _params(td_params) -> list:
+    return list(td_params.flatten_keys().values())
+
+
+def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
+    m, o, hidden = recipe.method, recipe.optim, recipe.network.hidden
+    dropout = m.actor_dropout if m.name == "iql" else 0.0
+    actor = make_actor(obs_keys, obs_dim, action_dim, hidden, dropout)
+    if m.name == "bc":
+        loss = BCLoss(actor)
+        opt = [_adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe)]
+        return Method(loss, opt, actor, None)
+    if m.name == "bcq":
+        from rm_torchrl.train.bcq import build_bcq
+
+        return build_bcq(recipe, obs_keys, obs_dim, action_dim)
+    qvalue = make_qvalue(obs_keys, obs_dim, action_dim, hidden)
+    if m.name == "iql":
+        value = make_value(obs_keys, obs_dim, hidden)
+        loss = IQLLoss(actor, qvalue, value, num_qvalue_nets=2, loss_function="l2",
+                       temperature=m.temperature, expectile=m.expectile)
+        opt = [
+            _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
+            _adam(_params(loss.qvalue_network_params), o.lr_critic, o.weight_decay_q, recipe),
+            _adam(_params(loss.value_network_params), o.lr_value, o.weight_decay_q, recipe),
+        ]
+    else:
+        loss = CQLLoss(actor, qvalue, loss_function="l2", min_q_weight=m.cql_alpha,
+                       deterministic_backup=True, num_random=10, with_lagrange=False)
+        opt = [
+            _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
+            _adam(_params(loss.qvalue_network_params), o.lr_critic, o.weight_decay_q, recipe),
+            torch.optim.Adam([loss.log_alpha], lr=o.lr_actor),
+        ]
+    loss.make_value_estimator(gamma=recipe.trainer.gamma)
+    return Method(loss, opt, actor, SoftUpdate(loss, tau=recipe.trainer.tau))
+
+
+#: Which entries of each loss output are summed into the objective.
+LOSS_TERMS = {
+    "iql": ("loss_actor", "loss_qvalue", "loss_value"),
+    "cql": ("loss_actor", "loss_qvalue", "loss_cql", "loss_alpha"),
+    "bc": ("loss_actor",),
+    "bcq": ("loss_vae", "loss_actor", "loss_qvalue"),
+}

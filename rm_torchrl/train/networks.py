@@ -1,0 +1,56 @@
+"""Actor and critics that read several TensorDict keys (observation, RM encoding, action) at once."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+
+
+class ConcatMLP(nn.Module):
+    """An MLP over the concatenation of its inputs, so (s, u) and (s, u, a) need no extra keys."""
+
+    def __init__(self, in_features: int, out_features: int, hidden: Sequence[int], dropout: float = 0.0):
+        super().__init__()
+        self.mlp = MLP(
+            in_features=in_features, out_features=out_features, num_cells=list(hidden),
+            activation_class=nn.ReLU, dropout=dropout or None,
+        )
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.mlp(torch.cat(inputs, -1))
+
+
+def make_actor(obs_keys: list, obs_dim: int, action_dim: int, hidden: Sequence[int], dropout: float = 0.0,
+               low: float = -1.0, high: float = 1.0) -> ProbabilisticActor:
+    """A tanh-Gaussian policy pi(a | s, u); its deterministic mode is the tanh of the mean."""
+    net = nn.Sequential(ConcatMLP(obs_dim, 2 * action_dim, hidden, dropout), NormalParamExtractor())
+    module = TensorDictModule(_Splat(net), in_keys=list(obs_keys), out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module, in_keys=["loc", "scale"], distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high}, return_log_prob=False,
+    )
+
+
+def make_qvalue(obs_keys: list, obs_dim: int, action_dim: int, hidden: Sequence[int]) -> ValueOperator:
+    return ValueOperator(ConcatMLP(obs_dim + action_dim, 1, hidden), in_keys=[*obs_keys, "action"])
+
+
+def make_value(obs_keys: list, obs_dim: int, hidden: Sequence[int]) -> ValueOperator:
+    return ValueOperator(ConcatMLP(obs_dim, 1, hidden), in_keys=list(obs_keys))
+
+
+class _Splat(nn.Module):
+    """Passes several inputs to a Sequential whose first layer takes them all."""
+
+    def __init__(self, seq: nn.Sequential):
+        super().__init__()
+        self.seq = seq
+
+    def forward(self, *inputs):
+        x = self.seq[0](*inputs)
+        for layer in self.seq[1:]:
+            x = layer(x)
+        return x
