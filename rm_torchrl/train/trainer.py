@@ -56,6 +56,20 @@ def _save(path: Path, state: dict) -> None:
     os.replace(tmp, path)
 
 
+def gradient_step(method, terms, batch):
+    """One update of every network of ``method`` on ``batch``; returns the loss TensorDict."""
+    losses = method.loss(batch)
+    total = sum(losses.get(t) for t in terms)
+    for opt in method.optimizers:
+        opt.zero_grad(set_to_none=True)
+    total.backward()
+    for opt in method.optimizers:
+        opt.step()
+    if method.target_updater is not None:
+        method.target_updater.step()
+    return losses
+
+
 def train(recipe: Recipe, progress: bool = True) -> Path:
     """Runs ``recipe`` to ``trainer.steps`` gradient steps; returns the run directory."""
     run_dir = recipe.run_dir
@@ -128,16 +142,7 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     started = time.perf_counter()
     try:
         for step in range(start + 1, recipe.trainer.steps + 1):
-            batch = data.sample(recipe.trainer.batch_size, generator)
-            losses = method.loss(batch)
-            total = sum(losses.get(t) for t in terms)
-            for opt in method.optimizers:
-                opt.zero_grad(set_to_none=True)
-            total.backward()
-            for opt in method.optimizers:
-                opt.step()
-            if method.target_updater is not None:
-                method.target_updater.step()
+            losses = gradient_step(method, terms, data.sample(recipe.trainer.batch_size, generator))
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
                 for t in terms:
                     value = float(losses.get(t).detach())

@@ -1,0 +1,96 @@
+"""Online evaluation in the real MuJoCo env, with the RM tracked by ``RMEnvTransform``.
+
+The env applies the same event spec, RM encoding and observation normalisation as the training
+data, so the policy sees exactly the features it was trained on.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torchrl.envs import Compose, DoubleToFloat, ObservationNorm, StepCounter, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from rm_torchrl.errors import RMError
+from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.data import ENCODING_KEY, TrainingData
+
+#: D4RL normalisation: score = 100 * (return - low) / (high - low).
+SCORE_RANGES = {
+    "door": (-56.512833, 2880.5693087298737),
+    "relocate": (-6.425911, 4233.877797728884),
+    "kitchen": (0.0, 4.0),
+}
+
+
+def normalized_score(kind: str, episode_return: float) -> float:
+    if not kind:
+        return episode_return
+    low, high = SCORE_RANGES[kind]
+    return 100.0 * (episode_return - low) / (high - low)
+
+
+def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
+    import gymnasium as gym
+    import gymnasium_robotics
+    from torchrl.envs import GymEnv
+
+    from rm_torchrl.envs import RMEnvTransform
+
+    gym.register_envs(gymnasium_robotics)
+    try:
+        base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs)
+    except Exception as err:  # gymnasium raises many types for a bad id or kwargs
+        raise RMError(f"cannot make eval env {recipe.eval.env!r}: {type(err).__name__}: {err}") from None
+    transforms = [StepCounter(max_steps=recipe.eval.max_steps)]
+    if recipe.eval.observation == "kitchen-v0":
+        from rm_torchrl.envs import KitchenV0Observation
+
+        transforms.append(KitchenV0Observation())
+    transforms.append(DoubleToFloat())
+    if recipe.data.events:
+        encoding = recipe.rm.encoding if ENCODING_KEY in data.obs_keys else None
+        transforms.append(RMEnvTransform(recipe.data.events, encoding=encoding, encoding_key=ENCODING_KEY))
+    transforms.append(ObservationNorm(loc=data.loc, scale=data.scale, in_keys=["observation"], standard_normal=True))
+    env = TransformedEnv(base, Compose(*transforms))
+    dim = env.observation_spec["observation"].shape[-1]
+    if dim != data.loc.shape[-1]:
+        raise RMError(
+            f"eval env {recipe.eval.env!r} observes {dim} values but the data has {data.loc.shape[-1]}; "
+            "set eval.observation (kitchen-v0 rebuilds the D4RL v0 layout) or another env"
+        )
+    return env
+
+
+class Evaluator:
+    """Runs ``eval.episodes`` deterministic episodes from the same seeds at every evaluation."""
+
+    def __init__(self, recipe: Recipe, data: TrainingData, policy):
+        self.recipe, self.policy = recipe, policy
+        self.env = make_eval_env(recipe, data)
+        self.track_rm = bool(recipe.data.events)
+
+    def run(self) -> dict:
+        self.env.set_seed(self.recipe.seed)
+        returns, events, successes = [], [], []
+        was_training = self.policy.training
+        self.policy.eval()
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            for _ in range(self.recipe.eval.episodes):
+                rollout = self.env.rollout(self.recipe.eval.max_steps, self.policy, break_when_any_done=True)
+                returns.append(float(rollout.get(("next", "reward")).sum()))
+                if self.track_rm:
+                    final = rollout.get(("next", "rm_state"))[-1]
+                    events.append(int((final > 0).sum()))
+                    successes.append(bool((final > 0).all()))
+        self.policy.train(was_training)
+        mean = sum(returns) / len(returns)
+        std = math.sqrt(sum((r - mean) ** 2 for r in returns) / len(returns))
+        return {
+            "return_mean": mean,
+            "return_std": std,
+            "score": normalized_score(self.recipe.eval.score, mean),
+            "success_rate": sum(successes) / len(returns) if successes else float("nan"),
+            "events_mean": sum(events) / len(returns) if events else float("nan"),
+            "episodes": len(returns),
+        }
