@@ -62,6 +62,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run="rm_torchrl.cli.train:run")
 
+    from rm_torchrl.cli.report import add_arguments as _report_arguments
+
+    p = sub.add_parser("report", help="Table 1/Table 2 in Markdown and learning curves from training runs")
+    _report_arguments(p)
+    p.set_defaults(run="rm_torchrl.cli.report:run")
+
     p = sub.add_parser("demo", help="build a door-like dataset here and refine it (no download)")
     p.add_argument("--transitions", type=int, default=200_000)
     p.add_argument("--alpha", default="0.5")

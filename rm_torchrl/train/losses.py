@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import CQLLoss, IQLLoss, LossModule, SoftUpdate
@@ -15,6 +15,10 @@ from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 
 class BCLoss(LossModule):
     """Behaviour cloning: the negative log-likelihood of the dataset action under the policy."""
+
+    actor_network: TensorDictModule
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams
 
     def __init__(self, actor_network: ProbabilisticActor):
         super().__init__()
@@ -72,7 +76,8 @@ def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) 
         ]
     else:
         loss = CQLLoss(actor, qvalue, loss_function="l2", min_q_weight=m.cql_alpha,
-                       deterministic_backup=True, num_random=10, with_lagrange=False)
+                       deterministic_backup=True, num_random=10, with_lagrange=False,
+                       target_entropy=-float(action_dim))
         opt = [
             _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
             _adam(_params(loss.qvalue_network_params), o.lr_critic, o.weight_decay_q, recipe),

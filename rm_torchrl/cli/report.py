@@ -1,0 +1,89 @@
+"""``rmrl report RUN_DIR... [--out DIR]``: Table 1, Table 2 and Figure 5 of the paper from training runs.
+
+Writes ``DIR/results.md`` (what was measured, the final scores per dataset x method as mean ± std
+over seeds, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
+on refined data, ``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from rm_torchrl.errors import RMError
+
+RESULTS = "results.md"
+CURVES = "learning_curves.png"
+SIZES = "dataset_sizes.png"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    p.add_argument("paths", nargs="+", metavar="RUN_DIR",
+                   help="run directories (eval.csv + recipe.yaml) or directories holding them, searched recursively")
+    p.add_argument("--out", default="reports", metavar="DIR",
+                   help="where results.md and the figures go (default: reports/)")
+    p.add_argument("--dataset-from", choices=("name", "source"), default="name",
+                   help="dataset label: the recipe name minus seed and method suffixes (default), "
+                        "or the stem of data.source")
+    p.add_argument("--decimals", type=int, default=1, help="decimals in Table 1 (default 1)")
+    return p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return add_arguments(argparse.ArgumentParser(prog="rmrl report", description=__doc__.splitlines()[0]))
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def run(args) -> int:
+    from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves
+    from rm_torchrl.report.runs import group_runs, load_runs
+    from rm_torchrl.report.tables import results_markdown, results_table
+
+    if args.decimals < 0 or args.decimals > 6:
+        raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
+    runs = load_runs(args.paths, dataset_from=args.dataset_from)
+    groups = group_runs(runs)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise RMError(f"--out {out} exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise RMError(f"cannot create {out}: {err.strerror}") from None
+
+    refined = any(r.stages is not None for r in runs)
+    figures = [("Learning curves", CURVES)] + ([("Dataset size after each refinement stage", SIZES)] if refined else [])
+    written = [plot_learning_curves(groups, out / CURVES)]
+    if refined:
+        written.append(plot_dataset_sizes(runs, out / SIZES))
+    elif (out / SIZES).is_file():
+        (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
+    _write_text(out / RESULTS, results_markdown(runs, groups, args.decimals, figures))
+    written.insert(0, out / RESULTS)
+
+    print(results_table(groups, args.decimals))
+    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} runs)", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except RMError as err:
+        print(f"rmrl report: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

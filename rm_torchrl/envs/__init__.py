@@ -1,0 +1,5 @@
+"""Online use of the event-ordered RM: TorchRL environment transforms."""
+from rm_torchrl.envs.kitchen_v0 import D4RL_V0_TASKS, KitchenV0Observation, kitchen_v0_goal
+from rm_torchrl.envs.rm_transform import RMEnvTransform
+
+__all__ = ["RMEnvTransform", "KitchenV0Observation", "kitchen_v0_goal", "D4RL_V0_TASKS"]

@@ -1,0 +1,462 @@
+"""Training run directories read into plain Python: runs, and groups of runs across seeds.
+
+A run directory is what :func:`rm_torchrl.train.trainer.train` writes: ``recipe.yaml``,
+``eval.csv`` (one row per evaluation), ``refine_report.json`` when the data was refined and
+``logs/scalars/*.csv``. :func:`find_run_dirs` accepts run directories or any directory above
+them; :func:`load_runs` reads them; :func:`group_runs` gathers the seeds of one
+(dataset, method) cell of the paper's Table 1.
+
+Labels (documented rules, so a table never depends on how a directory happens to be named):
+
+* **dataset** -- the recipe ``name`` (the run directory is ``{name}-seed{seed}``) with a trailing
+  ``-seed<N>`` removed and then any trailing method tokens removed (``-iql``, ``-bc``, ``-cql``,
+  ``-bcq``, ``-ours``, ``-refined``, ``-rm``, ``-raw``, ``-baseline``; ``_`` works as separator
+  too), so ``door-human``, ``door-human-bc`` and ``door-human-iql-raw`` all label ``door-human``.
+  When the name is empty or the default ``run``, or with ``dataset_from="source"``, the label is
+  ``data.source``'s stem instead: ``.../door-human-v0.hdf5`` -> ``door-human-v0``,
+  ``minari:D4RL/door/human-v2`` -> ``door-human-v2``.
+* **method** -- ``Ours`` for IQL on refined data (``data.refine: true``, the paper's method);
+  otherwise the upper-cased ``method.name`` (``BC``, ``BCQ``, ``IQL``, ``CQL``), with
+  `` (refined)`` appended when a baseline was itself trained on refined data, so refined and raw
+  runs never share a column.
+* **metric** -- the final evaluation's ``score`` column when the recipe sets ``eval.score``
+  (the D4RL normalisation), otherwise ``return_mean``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import yaml
+
+from rm_torchrl.errors import RMError, yaml_problem
+
+EVAL_FILE = "eval.csv"
+RECIPE_FILE = "recipe.yaml"
+REFINE_FILE = "refine_report.json"
+EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes")
+#: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
+METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
+OURS = "Ours"
+#: The refinement stages of ``refine_report.json`` in the order of the paper's Table 2.
+STAGES = ("original", "split", "ordered", "shorter")
+METHOD_TOKENS = ("iql", "bc", "cql", "bcq", "ours", "refined", "rm", "raw", "baseline")
+DATASET_FROM = ("name", "source")
+
+_SEED_SUFFIX = re.compile(r"[-_]seed\d+$", re.IGNORECASE)
+_METHOD_SUFFIX = re.compile(r"[-_](?:" + "|".join(METHOD_TOKENS) + r")$", re.IGNORECASE)
+
+
+# --- labels ----------------------------------------------------------------------------------
+
+def source_label(source: str) -> str:
+    """A dataset label from ``data.source``: a file's stem, or a Minari id with ``/`` as ``-``."""
+    source = source.strip()
+    if source.startswith("minari:"):
+        source = source[len("minari:"):]
+        source = re.sub(r"^D4RL/", "", source, flags=re.IGNORECASE)
+        return source.strip("/").replace("/", "-")
+    path = Path(source)
+    if path.suffix.lower() in (".hdf5", ".h5"):
+        return path.stem
+    return source.strip("/").replace("/", "-") or "dataset"
+
+
+def dataset_label(recipe: dict, dataset_from: str = "name") -> str:
+    """The dataset a run belongs to (see the module docstring for the rules)."""
+    if dataset_from not in DATASET_FROM:
+        raise RMError(f"dataset labels come from one of {list(DATASET_FROM)}, got {dataset_from!r}")
+    name = str(recipe.get("name") or "").strip()
+    if dataset_from == "name" and name and name != "run":
+        label = _SEED_SUFFIX.sub("", name)
+        while True:
+            shorter = _METHOD_SUFFIX.sub("", label)
+            if shorter == label or not shorter:
+                break
+            label = shorter
+        if label:
+            return label
+    source = str((recipe.get("data") or {}).get("source") or "")
+    if not source:
+        return name or "run"
+    return source_label(source)
+
+
+def method_label(recipe: dict) -> str:
+    """``Ours`` for IQL on refined data, else the upper-cased method (`` (refined)`` if refined)."""
+    name = str((recipe.get("method") or {}).get("name") or "iql").lower()
+    refined = bool((recipe.get("data") or {}).get("refine", False))
+    if refined and name == "iql":
+        return OURS
+    return name.upper() + (" (refined)" if refined else "")
+
+
+def method_sort_key(label: str) -> tuple:
+    """Orders method labels like the paper's Table 1: BC, BCQ, IQL, CQL, others, Ours."""
+    if label == OURS:
+        return (2, 0, label)
+    if label in METHOD_ORDER:
+        return (0, METHOD_ORDER.index(label), label)
+    return (1, 0, label)
+
+
+# --- one run ---------------------------------------------------------------------------------
+
+@dataclass
+class Run:
+    """One run directory: its recipe, evaluations (column -> array, sorted by step) and labels."""
+
+    path: Path
+    recipe: dict
+    evals: dict[str, np.ndarray]
+    refine_report: dict | None
+    dataset: str
+    method: str
+    metric: str
+    _scalars: dict | None = field(default=None, repr=False)
+
+    @property
+    def name(self) -> str:
+        return str(self.recipe.get("name", self.path.name))
+
+    @property
+    def seed(self) -> int:
+        return int(self.recipe.get("seed", 0))
+
+    @property
+    def refined(self) -> bool:
+        return bool(self.recipe.get("data", {}).get("refine", False))
+
+    @property
+    def steps(self) -> np.ndarray:
+        return self.evals["step"]
+
+    @property
+    def values(self) -> np.ndarray:
+        """The metric at every evaluation."""
+        return self.evals[self.metric]
+
+    @property
+    def final_step(self) -> int:
+        return int(self.steps[-1])
+
+    @property
+    def final_value(self) -> float:
+        return float(self.values[-1])
+
+    @property
+    def episodes(self) -> int:
+        """Episodes per evaluation (from eval.csv, else the recipe)."""
+        if "episodes" in self.evals and len(self.evals["episodes"]):
+            return int(self.evals["episodes"][-1])
+        return int(self.recipe.get("eval", {}).get("episodes", 0))
+
+    @property
+    def stages(self) -> dict[str, int] | None:
+        """Refinement stage sizes (transitions), or None for a run on raw data."""
+        if self.refine_report is None:
+            return None
+        return self.refine_report["stages"]
+
+    def scalars(self) -> dict[str, np.ndarray]:
+        """The TorchRL CSV logger's scalars (``logs/scalars/NAME.csv``): name -> (n, 2) [step, value]."""
+        if self._scalars is None:
+            self._scalars = read_scalars(self.path)
+        return self._scalars
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+def _is_run_dir(path: Path) -> bool:
+    return (path / EVAL_FILE).is_file() and (path / RECIPE_FILE).is_file()
+
+
+def find_run_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Every run directory (one holding eval.csv and recipe.yaml) at or below ``paths``.
+
+    Run directories are not searched further down. The result is sorted and free of
+    duplicates; an ``eval.csv`` or ``recipe.yaml`` file stands for its directory.
+    """
+    paths = list(paths)
+    if not paths:
+        raise RMError("no paths given: pass run directories or directories holding them")
+    found: dict[Path, None] = {}
+    orphans: list[Path] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.is_file() and path.name in (EVAL_FILE, RECIPE_FILE):
+            path = path.parent
+        if not path.exists():
+            raise RMError(f"{raw}: no such file or directory")
+        if not path.is_dir():
+            raise RMError(f"{raw} is not a directory (pass run directories or directories holding them)")
+        if _is_run_dir(path):
+            found[path.resolve()] = None
+            continue
+        for root, dirs, files in os.walk(path):
+            root_path = Path(root)
+            dirs.sort()
+            if EVAL_FILE in files and RECIPE_FILE in files:
+                found[root_path.resolve()] = None
+                dirs.clear()
+            elif EVAL_FILE in files:
+                orphans.append(root_path)
+    if not found:
+        where = ", ".join(str(p) for p in paths)
+        hint = f"; {orphans[0]} has eval.csv but no recipe.yaml" if orphans else ""
+        raise RMError(f"no training runs found under {where} (a run directory holds eval.csv and recipe.yaml){hint}")
+    return sorted(found)
+
+
+def read_recipe(run_dir: Path) -> dict:
+    path = Path(run_dir) / RECIPE_FILE
+    try:
+        recipe = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise RMError(f"cannot read {path}: {err.strerror}") from None
+    except yaml.YAMLError as err:
+        raise RMError(f"{path} is not valid YAML: {yaml_problem(err)}") from None
+    if not isinstance(recipe, dict):
+        raise RMError(f"{path} must hold a mapping (the resolved recipe), got {type(recipe).__name__}")
+    for section in ("data", "method", "eval", "trainer"):
+        if not isinstance(recipe.get(section, {}), dict):
+            raise RMError(f"{path}: {section} must be a mapping")
+    return recipe
+
+
+def read_eval_csv(path: Path) -> dict[str, np.ndarray]:
+    """eval.csv as column -> float array, sorted by step (a repeated step keeps its last row)."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except OSError as err:
+        raise RMError(f"cannot read {path}: {err.strerror}") from None
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise RMError(f"{path} is not a readable CSV file: {err}") from None
+    rows = [r for r in rows if any(cell.strip() for cell in r)]
+    if not rows:
+        raise RMError(f"{path} is empty: expected the header {','.join(EVAL_COLUMNS)}")
+    header = [h.strip() for h in rows[0]]
+    if "step" not in header or "return_mean" not in header:
+        raise RMError(f"{path}: unexpected header {','.join(header)!r}; expected {','.join(EVAL_COLUMNS)}")
+    if len(set(header)) != len(header):
+        raise RMError(f"{path}: repeated column in header {','.join(header)!r}")
+    by_step: dict[float, list[float]] = {}
+    for line, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise RMError(f"{path}, line {line}: {len(row)} fields, the header has {len(header)}")
+        try:
+            values = [float(cell) for cell in row]
+        except ValueError:
+            raise RMError(f"{path}, line {line}: non-numeric value in {','.join(row)!r}") from None
+        step = values[header.index("step")]
+        if not math.isfinite(step) or step < 0:
+            raise RMError(f"{path}, line {line}: step must be a non-negative number, got {row[header.index('step')]!r}")
+        by_step[step] = values
+    steps = sorted(by_step)
+    table = np.array([by_step[s] for s in steps], dtype=np.float64).reshape(len(steps), len(header))
+    return {name: table[:, i] for i, name in enumerate(header)}
+
+
+def read_scalars(run_dir: Path) -> dict[str, np.ndarray]:
+    """``logs/scalars/*.csv`` (lines ``step,value``) as name -> (n, 2) float arrays."""
+    out = {}
+    for path in sorted((Path(run_dir) / "logs" / "scalars").glob("*.csv")):
+        rows = []
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as err:
+            raise RMError(f"cannot read {path}: {getattr(err, 'strerror', None) or err}") from None
+        for line, raw in enumerate(text.splitlines(), start=1):
+            if not raw.strip():
+                continue
+            parts = raw.split(",")
+            try:
+                if len(parts) != 2:
+                    raise ValueError
+                rows.append((float(parts[0]), float(parts[1])))
+            except ValueError:
+                raise RMError(f"{path}, line {line}: expected 'step,value', got {raw!r}") from None
+        out[path.stem] = np.array(rows, dtype=np.float64).reshape(-1, 2)
+    return out
+
+
+def read_refine_report(run_dir: Path) -> dict | None:
+    path = Path(run_dir) / REFINE_FILE
+    if not path.is_file():
+        return None
+    try:
+        report = json.loads(path.read_text())
+    except OSError as err:
+        raise RMError(f"cannot read {path}: {err.strerror}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise RMError(f"{path} is not valid JSON: {err}") from None
+    stages = report.get("stages") if isinstance(report, dict) else None
+    if not isinstance(stages, dict) or any(not isinstance(stages.get(s), int) for s in STAGES):
+        raise RMError(f"{path}: 'stages' must map each of {list(STAGES)} to a number of transitions")
+    return report
+
+
+def read_run(run_dir: str | os.PathLike, dataset_from: str = "name") -> Run:
+    """One run directory; refuses a run without any evaluation."""
+    run_dir = Path(run_dir)
+    if not _is_run_dir(run_dir):
+        raise RMError(f"{run_dir} is not a run directory: it needs eval.csv and recipe.yaml")
+    recipe = read_recipe(run_dir)
+    evals = read_eval_csv(run_dir / EVAL_FILE)
+    if len(evals["step"]) == 0:
+        every = recipe.get("eval", {}).get("every")
+        why = ("eval.env is empty in its recipe, so it never evaluates" if not recipe.get("eval", {}).get("env")
+               else f"it has not reached its first evaluation (eval.every={every}) yet")
+        raise RMError(f"run {run_dir} has no evaluations (eval.csv holds only its header): {why}")
+    metric = "score" if recipe.get("eval", {}).get("score") else "return_mean"
+    if metric not in evals:
+        raise RMError(f"{run_dir / EVAL_FILE} has no '{metric}' column (eval.score={recipe['eval'].get('score')!r})")
+    report = read_refine_report(run_dir)
+    return Run(path=run_dir, recipe=recipe, evals=evals, refine_report=report,
+               dataset=dataset_label(recipe, dataset_from), method=method_label(recipe), metric=metric)
+
+
+def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name") -> list[Run]:
+    """Every run at or below ``paths``; all runs without evaluations are named in one error."""
+    runs, empty = [], []
+    for run_dir in find_run_dirs(paths):
+        try:
+            runs.append(read_run(run_dir, dataset_from))
+        except RMError as err:
+            if "has no evaluations" not in str(err):
+                raise
+            empty.append(str(err))
+    if len(empty) == 1:
+        raise RMError(empty[0])
+    if empty:
+        raise RMError(f"{len(empty)} runs have no evaluations:\n  " + "\n  ".join(empty))
+    return runs
+
+
+# --- groups across seeds ---------------------------------------------------------------------
+
+@dataclass
+class Group:
+    """The seeds of one (dataset, method) cell."""
+
+    dataset: str
+    method: str
+    runs: list[Run]
+
+    @property
+    def metric(self) -> str:
+        return self.runs[0].metric
+
+    @property
+    def seeds(self) -> list[int]:
+        return [r.seed for r in self.runs]
+
+    @property
+    def final_values(self) -> np.ndarray:
+        return np.array([r.final_value for r in self.runs])
+
+    @property
+    def final_steps(self) -> list[int]:
+        return [r.final_step for r in self.runs]
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.final_values))
+
+    @property
+    def std(self) -> float:
+        """Sample standard deviation (ddof=1) over seeds; 0 for a single seed."""
+        values = self.final_values
+        return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+    def curve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(steps, mean, std) of the metric over seeds.
+
+        Seeds evaluated at the same steps are stacked as they are; otherwise every seed is
+        linearly interpolated onto the union of all evaluation steps inside the range that all
+        seeds cover (never extrapolated). ``std`` is the sample std (0 with one seed).
+        """
+        steps = [r.steps for r in self.runs]
+        if all(len(s) == len(steps[0]) and np.array_equal(s, steps[0]) for s in steps):
+            grid = steps[0]
+            stack = np.stack([r.values for r in self.runs])
+        else:
+            lo = max(float(s[0]) for s in steps)
+            hi = min(float(s[-1]) for s in steps)
+            union = np.unique(np.concatenate(steps))
+            grid = union[(union >= lo) & (union <= hi)] if lo <= hi else union
+            stack = np.stack([np.where((grid >= r.steps[0]) & (grid <= r.steps[-1]),
+                                       np.interp(grid, r.steps, r.values), np.nan) for r in self.runs])
+        count = np.sum(~np.isnan(stack), axis=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns and single seeds
+            mean = np.nanmean(stack, axis=0)
+            std = np.where(count > 1, np.nanstd(stack, axis=0, ddof=1), 0.0)
+        return grid, mean, std
+
+
+def group_runs(runs: Iterable[Run]) -> list[Group]:
+    """Runs grouped by (dataset, method), sorted by dataset then Table 1's method order.
+
+    Refuses two runs of one cell with the same seed (they would be averaged as if they were
+    different seeds) and a dataset whose runs measure different things (score vs return).
+    """
+    cells: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        cells.setdefault((run.dataset, run.method), []).append(run)
+    groups = []
+    for (dataset, method), members in cells.items():
+        members.sort(key=lambda r: (r.seed, str(r.path)))
+        for a, b in zip(members, members[1:]):
+            if a.seed == b.seed:
+                raise RMError(
+                    f"runs {a.path} and {b.path} are both {method} on {dataset} with seed {a.seed}; "
+                    "give them recipe names that differ in more than a method suffix, or report them separately")
+        groups.append(Group(dataset, method, members))
+    metrics: dict[str, dict[str, Run]] = {}
+    for g in groups:
+        for r in g.runs:
+            metrics.setdefault(g.dataset, {}).setdefault(_metric_key(r), r)
+    for dataset, seen in metrics.items():
+        if len(seen) > 1:
+            examples = "; ".join(f"{r.path} uses {k}" for k, r in seen.items())
+            raise RMError(f"runs on {dataset} measure different things ({examples}); "
+                          "set the same eval.score in all of their recipes")
+    groups.sort(key=lambda g: (g.dataset, method_sort_key(g.method)))
+    return groups
+
+
+def _metric_key(run: Run) -> str:
+    score = run.recipe.get("eval", {}).get("score")
+    return f"score ({score})" if score else "return_mean"
+
+
+def datasets(groups: Iterable[Group]) -> list[str]:
+    return sorted({g.dataset for g in groups})
+
+
+def methods(groups: Iterable[Group]) -> list[str]:
+    return sorted({g.method for g in groups}, key=method_sort_key)
+
+
+def tidy(runs: Iterable[Run]) -> list[dict]:
+    """Long format: one dict per evaluation with run, dataset, method, seed, metric and eval.csv's columns."""
+    rows = []
+    for run in runs:
+        n = len(run.steps)
+        for i in range(n):
+            row = {"run": str(run.path), "dataset": run.dataset, "method": run.method, "seed": run.seed,
+                   "metric": run.metric, "value": float(run.values[i])}
+            for column, values in run.evals.items():
+                row[column] = int(values[i]) if column in ("step", "episodes") else float(values[i])
+            rows.append(row)
+    return rows

@@ -1,0 +1,178 @@
+"""Markdown tables in the layout of the paper's Table 1 (final scores) and Table 2 (stage sizes)."""
+from __future__ import annotations
+
+from collections import Counter
+from typing import Iterable, Sequence
+
+from rm_torchrl.report.runs import STAGES, Group, Run, datasets, group_runs, methods
+
+#: Table 2's row labels (the same as RefineReport.table()).
+STAGE_LABELS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events",
+                "shorter": "Shorter Traj."}
+MISSING = "–"
+DAGGER = "†"
+
+
+def _fmt(value: float, decimals: int) -> str:
+    text = f"{value:.{decimals}f}"
+    return "0" + text[2:] if text.startswith("-0") and float(text) == 0 else text  # no "-0.0"
+
+
+def _row(cells: Sequence[str]) -> str:
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
+def _last_step(groups: Sequence[Group]) -> int:
+    return max(step for g in groups for step in g.final_steps)
+
+
+def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
+    """Table 1: rows = datasets, columns = methods, cell = mean ± std over seeds of the final metric.
+
+    The std is the sample std (ddof=1; 0 for one seed). In each row with two or more cells the
+    best mean, compared as printed (to ``decimals``), is in bold (ties all bold). A cell with
+    fewer seeds than the fullest cell says ``(n=k)``; a cell some of whose seeds stopped
+    before the last step of the report is marked with a dagger.
+    """
+    groups = list(groups)
+    if not groups:
+        raise ValueError("no groups to tabulate")
+    cols = methods(groups)
+    by_cell = {(g.dataset, g.method): g for g in groups}
+    usual_n = max(len(g.runs) for g in groups)
+    last = _last_step(groups)
+    lines = [_row(["Dataset", *cols]), "|" + "---|" + "---:|" * len(cols)]
+    for dataset in datasets(groups):
+        row = [by_cell.get((dataset, m)) for m in cols]
+        shown = [float(_fmt(g.mean, decimals)) if g else None for g in row]
+        filled = [v for v in shown if v is not None]
+        best = max(filled) if len(filled) > 1 else None
+        cells = []
+        for g, value in zip(row, shown):
+            if g is None:
+                cells.append(MISSING)
+                continue
+            text = f"{_fmt(g.mean, decimals)} ± {_fmt(g.std, decimals)}"
+            if best is not None and value == best:
+                text = f"**{text}**"
+            if len(g.runs) != usual_n:
+                text += f" (n={len(g.runs)})"
+            if min(g.final_steps) < last:
+                text += f" {DAGGER}"
+            cells.append(text)
+        lines.append(_row([dataset, *cells]))
+    return "\n".join(lines)
+
+
+def _stage_values(runs: Sequence[Run]) -> dict[str, dict[str, list[int]]]:
+    """dataset -> stage -> sorted distinct sizes over that dataset's refined runs."""
+    out: dict[str, dict[str, set]] = {}
+    for run in runs:
+        if run.stages is None:
+            continue
+        per = out.setdefault(run.dataset, {s: set() for s in STAGES})
+        for s in STAGES:
+            per[s].add(int(run.stages[s]))
+    return {d: {s: sorted(v) for s, v in per.items()} for d, per in sorted(out.items())}
+
+
+def stage_sizes(runs: Iterable[Run]) -> dict[str, dict[str, int]]:
+    """dataset -> stage -> transitions (the largest value when runs of a dataset disagree)."""
+    return {d: {s: v[-1] for s, v in per.items()} for d, per in _stage_values(list(runs)).items()}
+
+
+def stages_table(runs: Iterable[Run]) -> str:
+    """Table 2: rows = refinement stages, columns = datasets, cell = transitions kept.
+
+    Every stage after the first also shows the share of the original dataset. Only runs with a
+    ``refine_report.json`` count; runs of one dataset that disagree (other alpha, other source)
+    show the range ``low–high``. Returns "" when no run was refined.
+    """
+    runs = list(runs)
+    values = _stage_values(runs)
+    if not values:
+        return ""
+    names = list(values)
+    lines = [_row(["Procedure", *names]), "|---|" + "---:|" * len(names)]
+    for stage in STAGES:
+        cells = []
+        for d in names:
+            sizes = values[d][stage]
+            text = f"{sizes[0]:,}" if len(sizes) == 1 else f"{sizes[0]:,}–{sizes[-1]:,}"
+            original = values[d]["original"]
+            if stage != "original" and len(original) == 1 and len(sizes) == 1 and original[0] > 0:
+                text += f" ({sizes[0] / original[0]:.1%})"
+            cells.append(text)
+        lines.append(_row([STAGE_LABELS[stage], *cells]))
+    return "\n".join(lines)
+
+
+def _orders(runs: Sequence[Run]) -> list[str]:
+    found: dict[str, list[str]] = {}
+    for run in runs:
+        if run.refine_report is None or not run.refine_report.get("order"):
+            continue
+        order = " → ".join(str(e) for e in run.refine_report["order"])
+        seen = found.setdefault(run.dataset, [])
+        if order not in seen:
+            seen.append(order)
+    return [f"- {d}: {' | '.join(o)}" for d, o in sorted(found.items())]
+
+
+def _join(items: Sequence) -> str:
+    return ", ".join(str(i) for i in items)
+
+
+def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
+    seeds = sorted({r.seed for r in runs})
+    finals = Counter(r.final_step for r in runs)
+    last = max(finals)
+    episodes = sorted({r.episodes for r in runs})
+    lines = [
+        f"Measured: {len(runs)} training run{'s' * (len(runs) != 1)} "
+        f"({len(datasets(groups))} dataset{'s' * (len(datasets(groups)) != 1)} × "
+        f"{len(methods(groups))} method{'s' * (len(methods(groups)) != 1)}), "
+        f"seed{'s' * (len(seeds) != 1)} {_join(seeds)}; the final evaluation at gradient step {last:,}"
+        + (f" ({_join(episodes)} episodes per evaluation)." if episodes and episodes[0] > 0 else "."),
+    ]
+    if len(finals) > 1:
+        ends = ", ".join(f"{s:,} ({n} run{'s' * (n != 1)})" for s, n in sorted(finals.items()))
+        lines.append(f"{DAGGER} Not every run reached step {last:,}: runs end at step {ends}; "
+                     f"each run contributes its own last evaluation.")
+    scored = sorted({g.dataset for g in groups if g.metric == "score"})
+    returned = sorted({g.dataset for g in groups if g.metric != "score"})
+    what = []
+    if scored:
+        what.append(f"D4RL-normalised `score` ({_join(scored)})")
+    if returned:
+        what.append(f"mean episode return `return_mean` ({_join(returned)}, where eval.score is unset)")
+    refined_baselines = any(g.method.endswith("(refined)") for g in groups)
+    lines.append(f"Cell: mean ± std (sample std over seeds) of the final evaluation's {' and '.join(what)}; "
+                 "the best mean of each dataset is in **bold**. "
+                 "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
+                 + (" unless marked (refined)." if refined_baselines else "."))
+    return lines
+
+
+def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None, decimals: int = 1,
+                     figures: Sequence[tuple[str, str]] = ()) -> str:
+    """The whole ``results.md``: what was measured, Table 1, Table 2 and links to ``figures``
+    (``(title, relative path)`` pairs)."""
+    runs = list(runs)
+    groups = list(groups) if groups is not None else group_runs(runs)
+    parts = ["# Results", "", *_describe(runs, groups), "",
+             "## Final evaluation (Table 1)", "", results_table(groups, decimals), ""]
+    table2 = stages_table(runs)
+    parts += ["## Dataset size after each refinement stage (Table 2)", ""]
+    if table2:
+        parts += ["Transitions kept after each procedure (share of the original dataset).", "", table2, ""]
+        orders = _orders(runs)
+        if orders:
+            parts += ["Best event order:", "", *orders, ""]
+    else:
+        parts += ["No run trained on refined data (data.refine: true), so there are no stage sizes.", ""]
+    if figures:
+        parts += ["## Figures", ""]
+        for title, path in figures:
+            parts += [f"![{title}]({path})", ""]
+    return "\n".join(parts)

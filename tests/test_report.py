@@ -1,0 +1,406 @@
+"""``rmrl report``: run directories -> Table 1 / Table 2 in Markdown and the learning-curve figures.
+
+Fake run directories are written here exactly as the trainer lays them out (recipe.yaml, eval.csv,
+refine_report.json, logs/scalars/*.csv) with known final scores, so every printed number is known:
+the final scores of a cell's three seeds are ``mean - k, mean, mean + k``, hence ``mean ± k``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from rm_torchrl.cli import report as cli_report
+from rm_torchrl.errors import RMError
+from rm_torchrl.report import dataset_label, find_run_dirs, group_runs, load_runs, method_label, read_run, tidy
+from rm_torchrl.report.tables import results_table, stages_table
+
+pytest.importorskip("matplotlib")
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+HEADER = "step,return_mean,return_std,score,success_rate,events_mean,episodes"
+SEEDS = (0, 1, 2)
+STEPS = (2000, 4000, 6000)
+
+# dataset -> (eval.score, {method label: (final mean, spread k)})
+CELLS = {
+    "door-human": ("door", {"BC": (-20.4, 3.0), "IQL": (74.8, 5.0), "CQL": (75.8, 2.5), "Ours": (439.5, 12.0)}),
+    "kitchen-partial": ("kitchen", {"BC": (1.3, 0.2), "IQL": (1.6, 0.4), "Ours": (3.2, 0.3)}),
+    "relocate-cloned": ("", {"BC": (-51.6, 1.0), "BCQ": (-56.0, 2.0), "Ours": (492.4, 8.0)}),
+}
+# Table 2 (the paper's numbers) for the refined runs of each dataset
+STAGES = {
+    "door-human": {"original": 6704, "split": 5001, "ordered": 5001, "shorter": 2261},
+    "kitchen-partial": {"original": 136345, "split": 98690, "ordered": 50114, "shorter": 22682},
+    "relocate-cloned": {"original": 996242, "split": 364207, "ordered": 364207, "shorter": 364207},
+}
+RECIPE_NAMES = {"BC": "{d}-bc", "BCQ": "{d}-bcq", "IQL": "{d}-iql", "CQL": "{d}_cql", "Ours": "{d}"}
+
+
+def write_run(root: Path, name: str, seed: int, method: str, refine: bool, score: str, finals: dict,
+              steps=None, stages: dict | None = None, source: str = "") -> Path:
+    """A run directory as the trainer writes it; ``finals`` maps each evaluated step to the metric."""
+    steps = tuple(sorted(finals)) if steps is None else steps
+    run = root / f"{name}-seed{seed}"
+    (run / "logs" / "scalars").mkdir(parents=True)
+    recipe = {
+        "name": name, "seed": seed, "out": str(root), "resume": False,
+        "data": {"source": source or f"../shared/data/d4rl/{name}.hdf5", "episode_ends": "auto",
+                 "refine": refine, "events": "door" if refine else "", "alpha": 0.5, "constraints": []},
+        "method": {"name": method},
+        "trainer": {"steps": max(steps, default=6000), "batch_size": 256},
+        "eval": {"env": "AdroitHandDoor-v1", "every": 2000, "episodes": 10, "score": score},
+    }
+    (run / "recipe.yaml").write_text(yaml.safe_dump(recipe, sort_keys=False))
+    lines = [HEADER]
+    for step in steps:
+        value = finals[step]
+        ret = value if not score else value * 10  # the return differs from the score when scored
+        lines.append(f"{step},{ret},1.5,{value},0.5,2.0,10")
+    (run / "eval.csv").write_text("\n".join(lines) + "\n")
+    (run / "logs" / "scalars" / "loss_actor.csv").write_text("".join(f"{s},{-s / 1000}\n" for s in steps))
+    if stages is not None:
+        report = {"stages": stages, "order": ["reach_handle", "door_0.2"], "order_score": 25,
+                  "groups": {"e0->reach_handle": 25}, "events": ["reach_handle", "door_0.2"], "alpha": 0.5}
+        (run / "refine_report.json").write_text(json.dumps(report, indent=2))
+    return run
+
+
+def build_runs(root: Path) -> Path:
+    """Every cell of CELLS x 3 seeds under root/<dataset>/ (a nested layout, found recursively)."""
+    for dataset, (score, cells) in CELLS.items():
+        for label, (mean, k) in cells.items():
+            method = {"Ours": "iql"}.get(label, label.lower())
+            for seed, offset in zip(SEEDS, (-k, 0.0, k)):
+                final = round(mean + offset, 6)
+                steps = STEPS
+                if label == "BC" and dataset == "door-human" and seed == 2:
+                    steps = (3000, 6000)  # evaluated at other steps: the curve is interpolated
+                finals = {s: final * s / max(steps) for s in steps}
+                write_run(root / dataset, RECIPE_NAMES[label].format(d=dataset), seed, method,
+                          refine=label == "Ours", score=score, finals=finals, steps=steps,
+                          stages=STAGES[dataset] if label == "Ours" else None)
+    return root
+
+
+def args(*paths, out, dataset_from="name", decimals=1):
+    return argparse.Namespace(paths=[str(p) for p in paths], out=str(out), dataset_from=dataset_from,
+                              decimals=decimals)
+
+
+@pytest.fixture(scope="module")
+def reported(tmp_path_factory):
+    """The runs, the report written from their parent directory, and what it printed."""
+    root = build_runs(tmp_path_factory.mktemp("runs"))
+    out = tmp_path_factory.mktemp("out") / "reports"
+    return root, out
+
+
+@pytest.fixture(scope="module")
+def report_output(reported):
+    root, out = reported
+    import contextlib
+    import io
+
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert cli_report.run(args(root, out=out)) == 0
+    return stdout.getvalue()
+
+
+def table_rows(text: str) -> dict[str, list[str]]:
+    """First-column label -> the other cells of every Markdown table row in ``text``."""
+    rows = {}
+    for line in text.splitlines():
+        if line.startswith("| ") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+# --- labels ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, expected", [
+    ("door-human", "door-human"), ("door-human-bc", "door-human"), ("door-human_cql", "door-human"),
+    ("door-human-iql-raw", "door-human"), ("door-human-seed3", "door-human"),
+    ("door-human-v0-BCQ-seed1", "door-human-v0"), ("iql", "iql"), ("kitchen-mixed", "kitchen-mixed"),
+])
+def test_dataset_label_from_name(name, expected):
+    assert dataset_label({"name": name, "data": {"source": "x.hdf5"}}) == expected
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("../shared/data/d4rl/door-cloned-v0.hdf5", "door-cloned-v0"), ("minari:D4RL/door/human-v2", "door-human-v2"),
+    ("mydata", "mydata"),
+])
+def test_dataset_label_from_source(source, expected):
+    recipe = {"name": "door-human-bc", "data": {"source": source}}
+    assert dataset_label(recipe, "source") == expected
+    assert dataset_label({"name": "run", "data": {"source": source}}) == expected  # the default name
+
+
+@pytest.mark.parametrize("method, refine, expected", [
+    ("iql", True, "Ours"), ("iql", False, "IQL"), ("bc", False, "BC"), ("bcq", False, "BCQ"),
+    ("cql", False, "CQL"), ("bc", True, "BC (refined)"),
+])
+def test_method_label(method, refine, expected):
+    assert method_label({"method": {"name": method}, "data": {"refine": refine}}) == expected
+
+
+# --- Table 1 ---------------------------------------------------------------------------------
+
+def test_table1_mean_std_and_bold_best(report_output):
+    rows = table_rows(report_output)
+    assert rows["Dataset"] == ["BC", "BCQ", "IQL", "CQL", "Ours"]  # the paper's column order
+    assert rows["door-human"] == ["-20.4 ± 3.0", "–", "74.8 ± 5.0", "75.8 ± 2.5", "**439.5 ± 12.0**"]
+    assert rows["kitchen-partial"] == ["1.3 ± 0.2", "–", "1.6 ± 0.4", "–", "**3.2 ± 0.3**"]
+    assert rows["relocate-cloned"] == ["-51.6 ± 1.0", "-56.0 ± 2.0", "–", "–", "**492.4 ± 8.0**"]
+    assert list(rows) == ["Dataset", "door-human", "kitchen-partial", "relocate-cloned"]
+
+
+def test_table1_uses_score_only_when_eval_score_is_set(reported):
+    root, _ = reported
+    runs = load_runs([root])
+    by = {(r.dataset, r.method, r.seed): r for r in runs}
+    door = by[("door-human", "Ours", 1)]
+    assert door.metric == "score" and door.final_value == pytest.approx(439.5)
+    assert door.evals["return_mean"][-1] == pytest.approx(4395.0)
+    relocate = by[("relocate-cloned", "Ours", 1)]
+    assert relocate.metric == "return_mean" and relocate.final_value == pytest.approx(492.4)
+
+
+def test_bold_marks_every_tie_and_not_a_lonely_cell(tmp_path):
+    for seed in SEEDS:
+        write_run(tmp_path, "door-human-bc", seed, "bc", False, "door", {6000: 10.04})
+        write_run(tmp_path, "door-human-cql", seed, "cql", False, "door", {6000: 9.96})
+        write_run(tmp_path, "door-human", seed, "iql", True, "door", {6000: 3.0})
+        write_run(tmp_path, "relocate-human-bc", seed, "bc", False, "relocate", {6000: 5.0})
+    table = results_table(group_runs(load_runs([tmp_path])))
+    rows = table_rows(table)
+    assert rows["door-human"] == ["**10.0 ± 0.0**", "**10.0 ± 0.0**", "3.0 ± 0.0"]  # equal as printed
+    assert rows["relocate-human"] == ["5.0 ± 0.0", "–", "–"]
+
+
+def test_results_md_header_and_figures(reported, report_output):
+    _, out = reported
+    text = (out / "results.md").read_text()
+    assert "30 training runs (3 datasets × 5 methods)" in text
+    assert "seeds 0, 1, 2" in text
+    assert "gradient step 6,000" in text and "10 episodes per evaluation" in text
+    assert "`score` (door-human, kitchen-partial)" in text and "`return_mean` (relocate-cloned" in text
+    assert "![Learning curves](learning_curves.png)" in text and "(dataset_sizes.png)" in text
+    assert "| door-human | -20.4 ± 3.0 | – | 74.8 ± 5.0 | 75.8 ± 2.5 | **439.5 ± 12.0** |" in text
+    assert report_output.strip() in text  # stdout is Table 1
+
+
+def test_cells_with_fewer_seeds_or_unfinished_runs_are_marked(tmp_path):
+    for seed in SEEDS:
+        write_run(tmp_path, "door-human", seed, "iql", True, "door", {2000: 1.0, 4000: 5.0})
+    write_run(tmp_path, "door-human-bc", 0, "bc", False, "door", {2000: 1.0})
+    write_run(tmp_path, "door-human-bc", 1, "bc", False, "door", {2000: 3.0})
+    runs = load_runs([tmp_path])
+    rows = table_rows(results_table(group_runs(runs)))
+    assert rows["door-human"] == ["2.0 ± 1.4 (n=2) †", "**5.0 ± 0.0**"]
+    from rm_torchrl.report.tables import results_markdown
+
+    assert "runs end at step 2,000 (2 runs), 4,000 (3 runs)" in results_markdown(runs)
+
+
+# --- Table 2 ---------------------------------------------------------------------------------
+
+def test_table2_rows(reported, report_output):
+    _, out = reported
+    rows = table_rows((out / "results.md").read_text())
+    assert rows["Procedure"] == ["door-human", "kitchen-partial", "relocate-cloned"]
+    assert rows["Original Dataset"] == ["6,704", "136,345", "996,242"]
+    assert rows["Splitting Traj."] == ["5,001 (74.6%)", "98,690 (72.4%)", "364,207 (36.6%)"]
+    assert rows["Ordered Events"] == ["5,001 (74.6%)", "50,114 (36.8%)", "364,207 (36.6%)"]
+    assert rows["Shorter Traj."] == ["2,261 (33.7%)", "22,682 (16.6%)", "364,207 (36.6%)"]
+    assert "- door-human: reach_handle → door_0.2" in (out / "results.md").read_text()
+
+
+def test_table2_range_when_refined_runs_disagree(tmp_path):
+    other = dict(STAGES["door-human"], shorter=3000)
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0}, stages=STAGES["door-human"])
+    write_run(tmp_path, "door-human", 1, "iql", True, "door", {6000: 1.0}, stages=other)
+    rows = table_rows(stages_table(load_runs([tmp_path])))
+    assert rows["Shorter Traj."] == ["2,261–3,000"]
+    assert rows["Original Dataset"] == ["6,704"]
+
+
+# --- figures and files -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["learning_curves.png", "dataset_sizes.png"])
+def test_pngs_written(reported, report_output, name):
+    _, out = reported
+    data = (out / name).read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 5000
+
+
+def test_no_temporary_files_left(reported, report_output):
+    _, out = reported
+    assert sorted(p.name for p in out.iterdir()) == ["dataset_sizes.png", "learning_curves.png", "results.md"]
+
+
+def test_without_refined_runs_there_is_no_size_figure(tmp_path, capsys):
+    for seed in SEEDS:
+        write_run(tmp_path / "runs", "door-human-bc", seed, "bc", False, "door", {2000: 1.0, 4000: seed})
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "dataset_sizes.png").write_bytes(PNG_MAGIC)  # stale, from an earlier report
+    assert cli_report.run(args(tmp_path / "runs", out=out)) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["learning_curves.png", "results.md"]
+    assert "No run trained on refined data" in (out / "results.md").read_text()
+    assert table_rows(capsys.readouterr().out)["door-human"] == ["1.0 ± 1.0"]
+
+
+def test_curve_interpolates_seeds_onto_a_common_grid(reported):
+    root, _ = reported
+    groups = {(g.dataset, g.method): g for g in group_runs(load_runs([root / "door-human"]))}
+    steps, mean, std = groups[("door-human", "BC")].curve()
+    # seeds 0, 1 at 2000/4000/6000, seed 2 at 3000/6000: the grid is the union inside [3000, 6000]
+    assert steps.tolist() == [3000, 4000, 6000]
+    # each seed's curve is f * step / 6000 (f its final score), so linear interpolation is exact
+    expected = np.array([-23.4, -20.4, -17.4])[:, None] * (np.array([3000, 4000, 6000]) / 6000)[None, :]
+    np.testing.assert_allclose(mean, expected.mean(axis=0), rtol=1e-9)
+    np.testing.assert_allclose(std, expected.std(axis=0, ddof=1), rtol=1e-9)
+    steps, mean, std = groups[("door-human", "Ours")].curve()
+    assert steps.tolist() == list(STEPS)
+    assert mean[-1] == pytest.approx(439.5) and std[-1] == pytest.approx(12.0)
+
+
+def test_tidy_and_scalars(reported):
+    root, _ = reported
+    run = read_run(root / "door-human" / "door-human-seed0")
+    assert (run.dataset, run.method, run.seed, run.final_step) == ("door-human", "Ours", 0, 6000)
+    assert run.scalars()["loss_actor"][:, 0].tolist() == [2000, 4000, 6000]
+    rows = tidy([run])
+    assert len(rows) == 3 and rows[-1]["step"] == 6000 and rows[-1]["value"] == pytest.approx(427.5)
+    assert rows[0]["method"] == "Ours" and rows[0]["episodes"] == 10
+
+
+# --- discovery -------------------------------------------------------------------------------
+
+def test_discovery_from_parents_run_dirs_and_files(reported):
+    root, _ = reported
+    everything = find_run_dirs([root])
+    assert len(everything) == 30
+    door = find_run_dirs([root / "door-human"])
+    assert len(door) == 12 and all(p.parent.name == "door-human" for p in door)
+    one = root / "door-human" / "door-human-seed1"
+    assert find_run_dirs([one]) == [one.resolve()]
+    assert find_run_dirs([one / "eval.csv", one, root / "door-human"]) == door  # no duplicates
+    assert {r.dataset for r in load_runs([root / "kitchen-partial", one])} == {"kitchen-partial", "door-human"}
+
+
+def test_run_dirs_are_not_searched_inside(tmp_path):
+    run = write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    write_run(run / "nested", "door-human", 1, "iql", True, "door", {6000: 1.0})
+    assert find_run_dirs([tmp_path]) == [run.resolve()]
+
+
+# --- errors ----------------------------------------------------------------------------------
+
+def test_error_no_runs(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(RMError, match=r"no training runs found under .*empty .*eval\.csv and recipe\.yaml"):
+        cli_report.run(args(tmp_path / "empty", out=tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_error_no_runs_names_a_run_without_recipe(tmp_path):
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "eval.csv").write_text(HEADER + "\n2000,1,1,1,1,1,10\n")
+    with pytest.raises(RMError, match=r"has eval\.csv but no recipe\.yaml"):
+        find_run_dirs([tmp_path])
+
+
+def test_error_missing_path(tmp_path):
+    with pytest.raises(RMError, match="nowhere: no such file or directory"):
+        find_run_dirs([tmp_path / "nowhere"])
+
+
+def test_error_run_without_evaluations_is_named(tmp_path):
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    empty = write_run(tmp_path, "door-human", 1, "iql", True, "door", {}, steps=())
+    with pytest.raises(RMError, match=re.escape(f"run {empty} has no evaluations")):
+        cli_report.run(args(tmp_path, out=tmp_path / "out"))
+    assert not (tmp_path / "out" / "results.md").exists()
+
+
+def test_error_several_runs_without_evaluations(tmp_path):
+    a = write_run(tmp_path, "door-human", 0, "iql", True, "door", {}, steps=())
+    b = write_run(tmp_path, "door-human", 1, "iql", True, "door", {}, steps=())
+    with pytest.raises(RMError, match="2 runs have no evaluations") as err:
+        load_runs([tmp_path])
+    assert str(a) in str(err.value) and str(b) in str(err.value)
+
+
+@pytest.mark.parametrize("body, problem", [
+    (HEADER + "\n2000,1.0,oops,1,1,1,10\n", r"eval\.csv, line 2: non-numeric value"),
+    (HEADER + "\n2000,1.0,1,1\n", r"eval\.csv, line 2: 4 fields, the header has 7"),
+    ("when,what\n1,2\n", r"eval\.csv: unexpected header 'when,what'"),
+    ("", r"eval\.csv is empty"),
+    (b"\xff\xfe\x00garbage", r"eval\.csv is not a readable CSV file"),
+])
+def test_error_unreadable_csv(tmp_path, body, problem):
+    run = write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    path = run / "eval.csv"
+    path.write_bytes(body) if isinstance(body, bytes) else path.write_text(body)
+    with pytest.raises(RMError, match=problem) as err:
+        cli_report.run(args(tmp_path, out=tmp_path / "out"))
+    assert str(run / "eval.csv") in str(err.value)
+
+
+def test_error_bad_recipe(tmp_path):
+    run = write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    (run / "recipe.yaml").write_text("name: [unclosed\n")
+    with pytest.raises(RMError, match=r"recipe\.yaml is not valid YAML"):
+        load_runs([tmp_path])
+
+
+def test_error_same_seed_twice_in_a_cell(tmp_path):
+    write_run(tmp_path, "door-human-iql", 0, "iql", False, "door", {6000: 1.0})
+    write_run(tmp_path, "door-human-iql-raw", 0, "iql", False, "door", {6000: 2.0})
+    with pytest.raises(RMError, match="are both IQL on door-human with seed 0"):
+        group_runs(load_runs([tmp_path]))
+
+
+def test_error_mixed_metrics_in_a_dataset(tmp_path):
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    write_run(tmp_path, "door-human-bc", 0, "bc", False, "", {6000: 2.0})
+    with pytest.raises(RMError, match="runs on door-human measure different things"):
+        group_runs(load_runs([tmp_path]))
+
+
+def test_error_out_is_a_file(reported, tmp_path):
+    root, _ = reported
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(RMError, match="is not a directory"):
+        cli_report.run(args(root / "door-human", out=tmp_path / "file"))
+
+
+def test_standalone_parser_and_exit_code(tmp_path, capsys):
+    parsed = cli_report.build_parser().parse_args(["a", "b"])
+    assert parsed.paths == ["a", "b"] and parsed.out == "reports" and parsed.dataset_from == "name"
+    assert cli_report.main([str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "rmrl report: error:" in capsys.readouterr().err
+
+
+def test_rmrl_report_subcommand(reported, tmp_path, capsys):
+    import importlib.util
+
+    source = Path(importlib.util.find_spec("rm_torchrl.cli.main").origin).read_text()
+    if "rm_torchrl.cli.report:run" not in source:  # checked without importing torch
+        pytest.skip("rmrl report is not registered in rm_torchrl/cli/main.py yet")
+    from rm_torchrl.cli.main import main
+
+    root, _ = reported
+    assert main(["report", str(root / "relocate-cloned"), "--out", str(tmp_path / "o")]) == 0
+    assert table_rows(capsys.readouterr().out)["relocate-cloned"][-1] == "**492.4 ± 8.0**"
+    assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2

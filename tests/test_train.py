@@ -1,0 +1,148 @@
+"""The recipe trainer on tiny data: recipes, losses going down, checkpoint/resume, CLI."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from rm_torchrl.cli.main import main
+from rm_torchrl.data.synthetic import make_door_like
+from rm_torchrl.errors import RMError
+from rm_torchrl.train import load_recipe, train
+from rm_torchrl.train.config import parse_override
+
+
+def write_d4rl(path: Path, transitions: int = 4000, episode_length: int = 100, seed: int = 0) -> Path:
+    """A D4RL-format file of door-like episodes (one step more per episode than transitions)."""
+    td = make_door_like(transitions, episode_length=episode_length, seed=seed)
+    obs, nxt, act = td["observation"].numpy(), td["next", "observation"].numpy(), td["action"].numpy()
+    ends = np.flatnonzero(td["next", "truncated"].squeeze(-1).numpy())
+    rows, actions, terminals = [], [], []
+    start = 0
+    for end in ends:
+        rows += [obs[start:end + 1], nxt[end:end + 1]]
+        actions += [act[start:end + 1], np.zeros((1, act.shape[1]), np.float32)]
+        terminals += [np.zeros(end - start + 1, bool), np.ones(1, bool)]
+        start = end + 1
+    observations = np.concatenate(rows)
+    with h5py.File(path, "w") as f:
+        f["observations"] = observations
+        f["actions"] = np.concatenate(actions)
+        f["rewards"] = np.zeros(len(observations), np.float32)
+        f["terminals"] = np.concatenate(terminals)
+        f["timeouts"] = np.zeros(len(observations), bool)
+    return path
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
+
+
+def make_recipe(tmp_path: Path, dataset: Path, text: str = "") -> Path:
+    path = tmp_path / "recipe.yaml"
+    path.write_text(
+        f"name: tiny\nout: {tmp_path / 'runs'}\n"
+        f"data: {{source: {dataset}, events: door, alpha: 0.5}}\n"
+        "network: {hidden: [32, 32]}\n"
+        "trainer: {steps: 200, batch_size: 64, log_every: 20, checkpoint_every: 100, threads: 1}\n" + text
+    )
+    return path
+
+
+def read_scalar(run_dir: Path, name: str) -> list[float]:
+    return [float(v) for _, v in csv.reader((run_dir / "logs" / "scalars" / f"{name}.csv").open())]
+
+
+@pytest.mark.parametrize("method,term", [("iql", "loss_qvalue"), ("bc", "loss_actor"), ("cql", "loss_qvalue")])
+def test_losses_go_down(tmp_path, dataset, method, term):
+    recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={method}", "trainer.steps=200"])
+    run_dir = train(recipe, progress=False)
+    values = read_scalar(run_dir, term)
+    assert len(values) == 10
+    assert np.mean(values[-5:]) < np.mean(values[:2]), values
+
+
+def test_raw_data_baseline_has_no_rm_input(tmp_path, dataset):
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["data.refine=false", "trainer.steps=20"])
+    run_dir = train(recipe, progress=False)
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 20
+    assert not (run_dir / "refine_report.json").exists()
+
+
+def test_resume_reaches_the_same_parameters(tmp_path, dataset):
+    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight"])
+    train(straight, progress=False)
+    first = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "trainer.steps=100"])
+    train(first, progress=False)
+    rest = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "resume=true"])
+    run_dir = train(rest, progress=False)
+    a = torch.load(straight.run_dir / "checkpoint.pt", weights_only=False)
+    b = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert a["step"] == b["step"] == 200
+    for key, value in a["loss"].items():
+        torch.testing.assert_close(value, b["loss"][key], rtol=0, atol=0, msg=key)
+    # the logged history is complete and not duplicated
+    assert [int(float(line.split(",")[0])) for line in (run_dir / "logs" / "scalars" / "loss_actor.csv").read_text().split()] == list(range(20, 201, 20))
+
+
+def test_existing_run_dir_is_refused(tmp_path, dataset):
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=10"])
+    train(recipe, progress=False)
+    with pytest.raises(RMError, match="resume=true"):
+        train(recipe, progress=False)
+
+
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ("trainer.stepz=5", r"unknown key\(s\) \['trainer.stepz'\]"),
+        ("trainer.steps=abc", "trainer.steps must be of type int"),
+        ("method.name=sac", "method.name must be one of"),
+        ("data.alpha=1.5", "alpha must lie in"),
+        ("trainer.steps=0", "trainer.steps must be positive"),
+        ("network.hidden=[0]", "network.hidden"),
+        ("data.source=", "data.source is required"),
+    ],
+)
+def test_recipe_validation(tmp_path, dataset, override, message):
+    with pytest.raises(RMError, match=message):
+        load_recipe(make_recipe(tmp_path, dataset), [override])
+
+
+def test_bad_override_and_yaml(tmp_path, dataset):
+    with pytest.raises(RMError, match="key.sub=value"):
+        parse_override("steps")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("trainer: {steps: [1\n")
+    with pytest.raises(RMError, match="not valid YAML"):
+        load_recipe(bad)
+
+
+def test_cli_train_and_multirun(tmp_path, dataset, capsys):
+    path = make_recipe(tmp_path, dataset)
+    assert main(["train", str(path), "trainer.steps=10", "--no-progress"]) == 0
+    assert main(["train", str(path), "trainer.steps=10", "seed=1,2", "--multirun", "--jobs", "2"]) == 0
+    for seed in (1, 2):
+        assert torch.load(tmp_path / "runs" / f"tiny-seed{seed}" / "checkpoint.pt", weights_only=False)["step"] == 10
+    assert main(["train", str(path), "trainer.nope=1"]) == 2
+    assert "unknown key" in capsys.readouterr().err
+
+
+def test_online_evaluation_in_mujoco(tmp_path, dataset):
+    recipe = load_recipe(
+        make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 20, every: 10, episodes: 2, score: door}\n"),
+        ["trainer.steps=20"],
+    )
+    run_dir = train(recipe, progress=False)
+    rows = list(csv.DictReader((run_dir / "eval.csv").open()))
+    assert [int(r["step"]) for r in rows] == [10, 20]
+    for r in rows:
+        assert int(r["episodes"]) == 2
+        assert 0 <= float(r["events_mean"]) <= 4
+        assert np.isfinite(float(r["score"]))
