@@ -68,9 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     _report_arguments(p)
     p.set_defaults(run="rm_torchrl.cli.report:run")
 
-    p = sub.add_parser("demo", help="build a door-like dataset here and refine it (no download)")
-    p.add_argument("--transitions", type=int, default=200_000)
-    p.add_argument("--alpha", default="0.5")
+    p = sub.add_parser("demo", help="the main job: refine door data, train IQL with and without the RM, "
+                                     "evaluate in MuJoCo, write the report (no download)")
+    p.add_argument("--dataset", help="a door D4RL .hdf5 (default: ../shared/data/d4rl/door-human-v0.hdf5 if "
+                                     "present, else door-like data built here)")
+    p.add_argument("--steps", type=int, default=3000, help="gradient steps per run")
+    p.add_argument("--transitions", type=int, default=20_000, help="size of the built door-like data")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/demo", metavar="DIR")
     p.set_defaults(run="rm_torchrl.cli.demo:run")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 import subprocess
 import sys
 
@@ -33,23 +34,28 @@ def run(args) -> int:
     grid = expand_grid(args.overrides)
     for combo in grid:
         load_recipe(args.recipe, combo)  # refuse a bad grid before starting anything
-    jobs = max(1, args.jobs)
-    threads = max(1, 2 // jobs) if jobs <= 2 else 1
+    run_many([[args.recipe, *combo] for combo in grid], args.jobs)
+    print(f"finished {len(grid)} runs")
+    return 0
+
+
+def run_many(runs: list[list[str]], jobs: int) -> None:
+    """``rmrl train`` on each argument list, ``jobs`` processes at a time sharing the cores."""
+    jobs = max(1, jobs)
+    threads = max(1, (os.cpu_count() or 1) // jobs)
     failures = []
-    with tqdm(total=len(grid), desc="runs", unit="run", file=sys.stderr) as bar:
-        pending = list(grid)
+    with tqdm(total=len(runs), desc="runs", unit="run", file=sys.stderr) as bar:
+        pending = list(runs)
         running: list[tuple[subprocess.Popen, list]] = []
         while pending or running:
             while pending and len(running) < jobs:
-                combo = pending.pop(0)
-                cmd = [sys.executable, "-m", "rm_torchrl.cli.main", "train", args.recipe, *combo,
+                argv = pending.pop(0)
+                cmd = [sys.executable, "-m", "rm_torchrl.cli.main", "train", *argv,
                        f"trainer.threads={threads}", "--no-progress"]
-                running.append((subprocess.Popen(cmd), combo))
-            proc, combo = running.pop(0)
+                running.append((subprocess.Popen(cmd), argv))
+            proc, argv = running.pop(0)
             if proc.wait() != 0:
-                failures.append(" ".join(combo))
+                failures.append(" ".join(argv))
             bar.update()
     if failures:
-        raise RMError(f"{len(failures)} of {len(grid)} runs failed: {failures}")
-    print(f"finished {len(grid)} runs")
-    return 0
+        raise RMError(f"{len(failures)} of {len(runs)} runs failed: {failures}")
