@@ -5,6 +5,20 @@ class RMError(ValueError):
     """Bad input to rm_torchrl: a malformed spec, wrong shapes, NaNs, empty data, bad options."""
 
 
+def read_yaml(path, what: str):
+    """The parsed YAML file at ``path``; ``what`` names it in the error ("recipe", "event spec")."""
+    import yaml
+
+    try:
+        text = open(path).read()
+    except OSError as err:
+        raise RMError(f"cannot read {what} {path}: {err.strerror}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise RMError(f"{what} {path} is not valid YAML: {yaml_problem(err)}") from None
+
+
 def yaml_problem(err) -> str:
     """A one-line description of a PyYAML error: what is wrong and where."""
     problem = getattr(err, "problem", None) or str(err).splitlines()[0]

@@ -242,17 +242,9 @@ def test_rm_graph_default_is_dot(capsys):
     assert text.startswith("digraph") and "slide cabinet" in text
 
 
-def test_demo(capsys, tmp_path):
-    out = tmp_path / "demo"
-    code, stdout, err = run(capsys, "demo", "--transitions", 5000, "--out", out)
-    assert code == 0, err
-    report = load_report(out)
-    assert report["stages"]["original"] == 5000
-    assert report["order"] == DOOR_EVENTS
-    data = TensorDict.load_memmap(out / "data")
-    assert data.batch_size[0] == report["stages"]["shorter"] > 0
-    assert data["rm_state"].shape == (data.batch_size[0], 4)
-    assert "Shorter Traj." in stdout
+def test_demo_refuses_a_bad_dataset(capsys, tmp_path):
+    code, _, err = run(capsys, "demo", "--dataset", tmp_path / "missing.hdf5", "--steps", 5, "--out", tmp_path / "d")
+    assert code == 2 and "does not exist" in err
 
 
 # --------------------------------------------------------------------------------------------
@@ -267,8 +259,8 @@ def test_bad_alpha(capsys, tmp_path, tiny, alpha):
     assert not out.exists()
 
 
-def test_bad_alpha_demo(capsys, tmp_path):
-    assert_error(capsys, "demo", ["demo", "--transitions", 100, "--alpha", "0", "--out", tmp_path / "d"], "alpha")
+def test_bad_steps_demo(capsys, tmp_path):
+    assert_error(capsys, "demo", ["demo", "--steps", 0, "--out", tmp_path / "d"], "steps")
     assert not (tmp_path / "d").exists()
 
 
@@ -368,8 +360,7 @@ def test_constraint_unknown_event(capsys, tmp_path, tiny):
 
 def test_dataset_where_no_event_happens(capsys, tmp_path, no_events):
     out = tmp_path / "o"
-    message = assert_error(capsys, "refine", ["refine", "--dataset", no_events, "--events", "door", "--out", out],
-                           "no event")
+    assert_error(capsys, "refine", ["refine", "--dataset", no_events, "--events", "door", "--out", out], "no event")
     assert not out.exists()
     assert list(tmp_path.iterdir()) == []
     # inspect still works on it and shows that nothing fires

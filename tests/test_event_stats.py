@@ -1,5 +1,4 @@
 """Per-event statistics of a dataset: hand-made answers and the door-human numbers."""
-import math
 from pathlib import Path
 
 import pytest

@@ -19,6 +19,7 @@ import yaml
 
 from rm_torchrl.cli.train import run_many
 from rm_torchrl.data.synthetic import make_door_like
+from rm_torchrl.errors import RMError
 
 SHARED_DOOR = Path("../shared/data/d4rl/door-human-v0.hdf5")
 
@@ -55,6 +56,10 @@ def demo_recipe(name: str, source: str, refine: bool, out: Path, steps: int, see
 
 
 def run(args) -> int:
+    if args.steps < 1 or args.transitions < 1:
+        raise RMError(f"--steps and --transitions must be positive, got {args.steps} and {args.transitions}")
+    if args.dataset and not Path(args.dataset).is_file():
+        raise RMError(f"dataset file {args.dataset} does not exist")
     out = Path(args.out)
     (out / "recipes").mkdir(parents=True, exist_ok=True)
     if args.dataset:

@@ -5,12 +5,11 @@ import os
 import sys
 from pathlib import Path
 
-import yaml
 from tqdm import tqdm
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.store import write_refined
-from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, run_pipeline
 from rm_torchrl.refine.shortest import check_alpha
@@ -34,12 +33,7 @@ def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
 
 def load_recipe(path: str) -> dict:
     """A refine recipe; relative dataset and event-spec files are found from the recipe's folder."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise RMError(f"cannot read recipe {path}: {err.strerror}") from None
-    except yaml.YAMLError as err:
-        raise RMError(f"recipe {path} is not valid YAML: {yaml_problem(err)}") from None
+    data = read_yaml(path, "recipe")
     if not isinstance(data, dict):
         raise RMError(f"recipe {path} must be a mapping of {sorted(RECIPE_KEYS)}")
     unknown = set(data) - set(RECIPE_KEYS)

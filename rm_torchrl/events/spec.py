@@ -19,10 +19,9 @@ from pathlib import Path
 from typing import Callable, Sequence, Union
 
 import torch
-import yaml
 from tensordict import TensorDictBase
 
-from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml
 
 NestedKey = Union[str, tuple]
 _OPS: dict[str, Callable[[torch.Tensor, float], torch.Tensor]] = {
@@ -256,15 +255,7 @@ class EventSpec:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "EventSpec":
-        path = Path(path)
-        try:
-            text = path.read_text()
-        except OSError as err:
-            raise RMError(f"cannot read event spec {path}: {err.strerror}") from None
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as err:
-            raise RMError(f"event spec {path} is not valid YAML: {yaml_problem(err)}") from None
+        data = read_yaml(path, "event spec")
         return cls.from_dict(data, source=str(path))
 
     @classmethod

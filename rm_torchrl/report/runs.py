@@ -35,9 +35,8 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
-import yaml
 
-from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml
 
 EVAL_FILE = "eval.csv"
 RECIPE_FILE = "recipe.yaml"
@@ -218,12 +217,7 @@ def find_run_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
 
 def read_recipe(run_dir: Path) -> dict:
     path = Path(run_dir) / RECIPE_FILE
-    try:
-        recipe = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise RMError(f"cannot read {path}: {err.strerror}") from None
-    except yaml.YAMLError as err:
-        raise RMError(f"{path} is not valid YAML: {yaml_problem(err)}") from None
+    recipe = read_yaml(path, "run recipe")
     if not isinstance(recipe, dict):
         raise RMError(f"{path} must hold a mapping (the resolved recipe), got {type(recipe).__name__}")
     for section in ("data", "method", "eval", "trainer"):

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 
 METHODS = ("iql", "bc", "cql", "bcq")
 
@@ -192,12 +192,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 def load_recipe(path: str | Path, overrides: list[str] = ()) -> Recipe:
     """The recipe at ``path`` with ``overrides`` applied; data and event files are resolved next to it."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as err:
-        raise RMError(f"cannot read recipe {path}: {err.strerror}") from None
-    except yaml.YAMLError as err:
-        raise RMError(f"recipe {path} is not valid YAML: {yaml_problem(err)}") from None
+    data = read_yaml(path, "recipe") or {}
     if not isinstance(data, dict):
         raise RMError(f"recipe {path} must be a mapping")
     data.setdefault("name", path.stem)
