@@ -58,7 +58,7 @@ def read_scalar(run_dir: Path, name: str) -> list[float]:
     return [float(v) for _, v in csv.reader((run_dir / "logs" / "scalars" / f"{name}.csv").open())]
 
 
-@pytest.mark.parametrize("method,term", [("iql", "loss_qvalue"), ("bc", "loss_actor"), ("cql", "loss_qvalue")])
+@pytest.mark.parametrize("method,term", [("iql", "loss_qvalue"), ("bc", "loss_actor"), ("cql", "loss_qvalue"), ("bcq", "loss_vae")])
 def test_losses_go_down(tmp_path, dataset, method, term):
     recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={method}", "trainer.steps=200"])
     run_dir = train(recipe, progress=False)
