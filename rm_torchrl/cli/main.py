@@ -68,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     _report_arguments(p)
     p.set_defaults(run="rm_torchrl.cli.report:run")
 
+    from rm_torchrl.cli.import_d4rl import add_arguments as _import_arguments
+
+    p = sub.add_parser("import-d4rl", help="write a D4RL HDF5 file as a local Minari dataset (atomic)")
+    _import_arguments(p)
+    p.set_defaults(run="rm_torchrl.cli.import_d4rl:run")
+
     p = sub.add_parser("demo", help="the main job: refine door data, train IQL with and without the RM, "
                                      "evaluate in MuJoCo, write the report (no download)")
     p.add_argument("--dataset", help="a door D4RL .hdf5 (default: ../shared/data/d4rl/door-human-v0.hdf5 if "

@@ -31,8 +31,12 @@ EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "e
 def _make_logger(recipe: Recipe, run_dir: Path):
     from torchrl.record.loggers import get_logger
 
-    kwargs = {"project": recipe.logger.project} if recipe.logger.backend == "wandb" else {}
-    return get_logger(recipe.logger.backend, logger_name=str(run_dir), experiment_name="logs", **kwargs)
+    backend = recipe.logger.backend
+    kwargs = {"project": recipe.logger.project} if backend == "wandb" else {}
+    try:
+        return get_logger(backend, logger_name=str(run_dir), experiment_name="logs", **kwargs)
+    except ImportError as err:
+        raise RMError(f"logger.backend={backend} needs its package: pip install 'rm_torchrl[{backend}]' ({err})") from None
 
 
 def _trim_history(run_dir: Path, step: int) -> None:

@@ -1,0 +1,361 @@
+"""Turn a D4RL HDF5 file into a local Minari dataset that ``load_minari`` (and ``rmrl refine``) read back.
+
+D4RL stores T observations and T actions per episode and no final next observation, so an episode
+of T steps becomes a Minari episode of T observations and the first T-1 actions: exactly the T-1
+transitions ``load_d4rl_hdf5`` forms. Its last transition is terminated when the D4RL terminal flag
+of its episode is set (on that step or on the dropped last step), else truncated; terminal flags
+inside an episode are kept. Episodes of a single step hold no transition and are skipped.
+
+The dataset is built by ``minari.create_dataset_from_buffers`` in a hidden temporary cache next to
+the real one (``<cache>/.rmrl-import-*``, which Minari's listings skip) and renamed into
+``<cache>/<namespace>/<name-vN>`` only once it is complete, so a failure or an interruption leaves
+no half-written dataset behind (and, with ``overwrite``, the previous dataset in place).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import os
+import shutil
+import tempfile
+import warnings
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rm_torchrl.data.d4rl import _read, episode_end_flags
+from rm_torchrl.errors import RMError
+
+#: Key of the dataset metadata that records how the dataset was made.
+IMPORT_METADATA_KEY = "rm_torchrl_import"
+_VERSIONED = ("rm_torchrl", "gymnasium-robotics", "mujoco", "minari", "gymnasium", "h5py", "numpy")
+_TMP_PREFIX = ".rmrl-import-"
+
+
+def import_d4rl(
+    path: str | os.PathLike,
+    name: str,
+    episode_ends: str = "auto",
+    env_id: str | None = None,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> str:
+    """Write the D4RL file at ``path`` as the local Minari dataset ``name``; return its dataset id.
+
+    ``name``: a Minari id, ``[namespace/...]name-v<N>``. ``episode_ends``: which flags end episodes
+    (see ``episode_end_flags``). ``env_id``: a registered gymnasium id (gymnasium-robotics envs
+    included) stored as the dataset's env spec; its spaces are used where they fit the data, else the
+    spaces are Boxes inferred from the data (observations unbounded, actions within the data's range).
+    ``overwrite`` replaces an existing dataset ``name``. ``progress(written, total)`` is called as
+    episodes are written.
+    """
+    dataset_id = check_dataset_name(name)
+    path = Path(path)
+    arrays = _read_d4rl(path)
+    obs, actions = arrays["observations"], arrays["actions"]
+    ends, used = episode_end_flags(obs, arrays["terminals"], arrays["timeouts"], episode_ends)
+    ends = ends.copy()
+    ends[-1] = True
+    last_rows = np.flatnonzero(ends)
+    first_rows = np.concatenate([[0], last_rows[:-1] + 1])
+    multi = last_rows > first_rows  # single-step episodes hold no transition
+    if not multi.any():
+        raise RMError(f"{path}: every episode has a single step, so there are no transitions")
+    episodes = list(zip(first_rows[multi].tolist(), last_rows[multi].tolist()))
+
+    cache = _cache_root()
+    final = cache / dataset_id
+    _check_target(final, dataset_id, cache, overwrite)
+
+    env = _make_env(env_id) if env_id else None
+    try:
+        observation_space, obs_from = _space(obs, env.observation_space if env else None, bounded=False)
+        action_space, act_from = _space(actions, env.action_space if env else None, bounded=True)
+        record = {
+            "source_file": path.name,
+            "source_path": str(path.resolve()),
+            "source_sha256": _sha256(path),
+            "source_steps": int(obs.shape[0]),
+            "episode_ends_requested": episode_ends,
+            "episode_ends": used,
+            "episodes": len(episodes),
+            "transitions": int(sum(last - first for first, last in episodes)),
+            "skipped_single_step_episodes": int((~multi).sum()),
+            "env_id": env_id,
+            "observation_space_from": obs_from,
+            "action_space_from": act_from,
+            "layout": "a D4RL episode of T steps is T observations and its first T-1 actions, rewards, "
+                      "terminations and truncations; the last transition is terminated if the episode's "
+                      "D4RL terminal flag is set, else truncated",
+            "versions": _versions(),
+            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        _build_and_move(
+            dataset_id, final, cache, overwrite, arrays, episodes, env, observation_space, action_space, record, progress
+        )
+    finally:
+        if env is not None:
+            env.close()
+    return dataset_id
+
+
+def check_dataset_name(name: str) -> str:
+    """``name`` if it is a valid Minari dataset id with a version, else an RMError saying what one looks like."""
+    from minari.dataset.minari_dataset import DATASET_ID_RE
+
+    match = DATASET_ID_RE.fullmatch(name) if isinstance(name, str) else None
+    if match is None or match.group("version") is None:
+        raise RMError(
+            f"bad dataset name {name!r}: Minari names look like 'namespace/name-v0' (letters, digits, '-' and '_', "
+            "optional namespaces separated by '/', and a '-v<number>' version at the end)"
+        )
+    return name
+
+
+def _read_d4rl(path: Path) -> dict[str, np.ndarray]:
+    """The D4RL arrays of ``path``, checked like ``load_d4rl_hdf5`` checks them."""
+    import h5py
+
+    if not path.is_file():
+        raise RMError(f"dataset file {path} does not exist")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
+    with f:
+        arrays = {key: _read(f, key, path) for key in ("observations", "actions", "rewards", "terminals")}
+        arrays["timeouts"] = f["timeouts"][()] if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
+    arrays["terminals"] = arrays["terminals"].astype(bool)
+    arrays["timeouts"] = arrays["timeouts"].astype(bool)
+    obs, actions = arrays["observations"], arrays["actions"]
+    n = obs.shape[0] if obs.ndim else 0
+    if n == 0:
+        raise RMError(f"{path} holds no steps")
+    if obs.ndim != 2 or actions.ndim != 2:
+        raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
+    for key in ("actions", "rewards", "terminals", "timeouts"):
+        if arrays[key].shape[0] != n:
+            raise RMError(f"{path}: {key} has {arrays[key].shape[0]} rows but observations has {n}")
+    for key in ("rewards", "terminals", "timeouts"):
+        if arrays[key].ndim != 1:
+            raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
+    for key in ("observations", "actions", "rewards"):
+        if not np.issubdtype(arrays[key].dtype, np.number):
+            raise RMError(f"{path}: {key} must be numeric, got dtype {arrays[key].dtype}")
+    if not np.isfinite(obs).all():
+        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
+    return arrays
+
+
+def _episode_buffer(arrays: dict, first: int, last: int):
+    """The Minari episode of D4RL rows ``first..last``: T observations, T-1 actions (see the module doc)."""
+    from minari.data_collector import EpisodeBuffer
+
+    terminations = arrays["terminals"][first:last].copy()
+    terminations[-1] |= arrays["terminals"][last]
+    truncations = np.zeros_like(terminations)
+    truncations[-1] = not terminations[-1]
+    return EpisodeBuffer(
+        observations=arrays["observations"][first:last + 1],
+        actions=arrays["actions"][first:last],
+        rewards=arrays["rewards"][first:last],
+        terminations=terminations,
+        truncations=truncations,
+    )
+
+
+def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, observation_space, action_space,
+                    record, progress) -> None:
+    import minari
+    from minari.dataset.minari_dataset import MinariDataset
+
+    tmp_root = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=cache))
+    old = tmp_root / ".previous"
+    made: list[Path] = []
+    try:
+        total = len(episodes)
+        chunk = max(1, total // 100)
+        with _datasets_path(tmp_root):
+            with warnings.catch_warnings():
+                # author_email / eval_env / env_spec "is None" notices: there is nothing better to give
+                warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
+                dataset = minari.create_dataset_from_buffers(
+                    dataset_id,
+                    [_episode_buffer(arrays, *episodes[0])],
+                    env=env,
+                    algorithm_name=f"D4RL {record['source_file']} (human demonstrations or policy rollouts, as in D4RL)",
+                    author={"D4RL (Fu et al., 2020)", f"converted by rm_torchrl {record['versions']['rm_torchrl']}"},
+                    code_permalink=f"rm_torchrl=={record['versions']['rm_torchrl']}: rm_torchrl/data/d4rl_to_minari.py",
+                    action_space=action_space,
+                    observation_space=observation_space,
+                    description=(
+                        f"D4RL dataset {record['source_file']} (sha256 {record['source_sha256']}) converted to Minari "
+                        f"by `rmrl import-d4rl`, episodes ended by {record['episode_ends']}. {record['layout']}. "
+                        "D4RL data is released under CC BY 4.0 (Fu et al., D4RL, 2020)."
+                    ),
+                    requirements=_requirements(env),
+                    jpeg_encoding=False,
+                )
+                if progress is not None:
+                    progress(1, total)
+                for start in range(1, total, chunk):
+                    part = episodes[start:start + chunk]
+                    dataset.update_dataset_from_buffer([_episode_buffer(arrays, *ep) for ep in part])
+                    if progress is not None:
+                        progress(start + len(part), total)
+                dataset.storage.update_episode_metadata(
+                    [{"d4rl_first_row": first, "d4rl_last_row": last, "d4rl_steps": last - first + 1,
+                      "ends_with": "terminated" if arrays["terminals"][last - 1] or arrays["terminals"][last]
+                      else "truncated"} for first, last in episodes]
+                )
+                dataset.storage.update_metadata({IMPORT_METADATA_KEY: record})
+        built = tmp_root / dataset_id
+        check = MinariDataset(built / "data")
+        if (check.total_episodes, check.total_steps) != (record["episodes"], record["transitions"]):
+            raise RMError(
+                f"the written dataset holds {check.total_episodes} episodes and {check.total_steps} steps, "
+                f"expected {record['episodes']} and {record['transitions']}; nothing was written"
+            )
+        for parent in reversed(final.relative_to(cache).parents):
+            if parent != Path(".") and not (cache / parent).exists():
+                (cache / parent).mkdir()
+                made.append(cache / parent)
+        if final.exists():
+            if not overwrite:
+                raise RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
+            os.replace(final, old)
+        os.replace(built, final)
+    except BaseException:
+        if old.exists() and not final.exists():
+            os.replace(old, final)
+        for parent in reversed(made):
+            try:
+                parent.rmdir()
+            except OSError:
+                pass
+        raise
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    _register_namespace(dataset_id)
+
+
+def _register_namespace(dataset_id: str) -> None:
+    """Write Minari's namespace metadata for a new namespace, as ``create_dataset_from_buffers`` does."""
+    from minari.dataset.minari_dataset import parse_dataset_id
+    from minari.namespace import create_namespace, list_local_namespaces
+
+    namespace = parse_dataset_id(dataset_id)[0]
+    try:
+        if namespace is not None and namespace not in list_local_namespaces():
+            create_namespace(namespace)
+    except (OSError, ValueError):  # only the namespace's description is missing then; the dataset is in place
+        pass
+
+
+@contextmanager
+def _datasets_path(path: Path):
+    """Point Minari's cache (``MINARI_DATASETS_PATH``) at ``path`` for the duration."""
+    previous = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(path)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = previous
+
+
+def _cache_root() -> Path:
+    from minari.storage import get_dataset_path
+
+    try:
+        return Path(get_dataset_path()).resolve()  # creates it when missing
+    except OSError as err:
+        raise RMError(f"cannot use the Minari cache: {err}") from None
+
+
+def _check_target(final: Path, dataset_id: str, cache: Path, overwrite: bool) -> None:
+    for parent in final.relative_to(cache).parents:
+        if parent != Path(".") and (cache / parent / "data").exists():
+            raise RMError(f"cannot put {dataset_id!r} inside the Minari dataset {parent.as_posix()!r}")
+        if (cache / parent).exists() and not (cache / parent).is_dir():
+            raise RMError(f"{cache / parent} is a file, so {dataset_id!r} cannot be written")
+    if final.exists():
+        if not (final / "data").is_dir():
+            raise RMError(f"{final} exists and is not a Minari dataset (a namespace?); choose another name")
+        if not overwrite:
+            raise RMError(f"Minari dataset {dataset_id!r} already exists in {cache}; pass --overwrite to replace it")
+
+
+def _make_env(env_id: str):
+    import gymnasium as gym
+
+    try:
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+    except ImportError:
+        pass
+    try:
+        gym.spec(env_id)
+    except Exception as err:  # NameNotFound, VersionNotFound, NamespaceNotFound, Error, ...
+        raise RMError(f"unknown gymnasium environment {env_id!r}: {err}") from None
+    try:
+        return gym.make(env_id)
+    except Exception as err:
+        raise RMError(f"cannot make environment {env_id!r}: {type(err).__name__}: {err}") from None
+
+
+def _space(data: np.ndarray, env_space, bounded: bool):
+    """The env's Box when the data fits it (shape and bounds; data dtype kept), else a Box from the data.
+
+    Returns the space and where it came from (``"env"`` or ``"data"`` with the reason).
+    """
+    from gymnasium import spaces
+
+    shape = data.shape[1:]
+    dtype = data.dtype if np.issubdtype(data.dtype, np.floating) else np.float32
+    reason = "no env_id given"
+    if env_space is not None:
+        if isinstance(env_space, spaces.Box) and env_space.shape == shape:
+            low, high = env_space.low, env_space.high
+            if (data >= low).all() and (data <= high).all():
+                return spaces.Box(low.astype(dtype), high.astype(dtype), shape, dtype), "env"
+            reason = "the data leaves the env's bounds"
+        else:
+            what = f"Box{env_space.shape}" if isinstance(env_space, spaces.Box) else type(env_space).__name__
+            reason = f"the env's {what} space does not fit data of shape {shape}"
+    if bounded:
+        low, high = data.min(0).astype(dtype), data.max(0).astype(dtype)
+    else:
+        low, high = np.full(shape, -np.inf, dtype), np.full(shape, np.inf, dtype)
+    return spaces.Box(low, high, shape, dtype), f"data ({reason})"
+
+
+def _requirements(env) -> list[str] | None:
+    if env is None:
+        return None
+    versions = _versions()
+    return [f"{name}=={versions[name]}" for name in ("gymnasium", "gymnasium-robotics", "mujoco") if versions[name]]
+
+
+def _versions() -> dict[str, str | None]:
+    out = {}
+    for name in _VERSIONED:
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
