@@ -50,6 +50,41 @@ def episode_end_flags(obs: np.ndarray, terminals: np.ndarray, timeouts: np.ndarr
     )
 
 
+def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The D4RL arrays of ``path`` (``timeouts`` all False when absent), checked for shape, type and NaN."""
+    import h5py
+
+    if not path.is_file():
+        raise RMError(f"dataset file {path} does not exist")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
+    with f:
+        arrays = {key: _read(f, key, path) for key in ("observations", "actions", "rewards", "terminals")}
+        arrays["timeouts"] = f["timeouts"][()] if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
+    arrays["terminals"] = arrays["terminals"].astype(bool)
+    arrays["timeouts"] = arrays["timeouts"].astype(bool)
+    obs, actions = arrays["observations"], arrays["actions"]
+    n = obs.shape[0] if obs.ndim else 0
+    if n == 0:
+        raise RMError(f"{path} holds no steps")
+    if obs.ndim != 2 or actions.ndim != 2:
+        raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
+    for key in ("actions", "rewards", "terminals", "timeouts"):
+        if arrays[key].shape[0] != n:
+            raise RMError(f"{path}: {key} has {arrays[key].shape[0]} rows but observations has {n}")
+    for key in ("rewards", "terminals", "timeouts"):
+        if arrays[key].ndim != 1:
+            raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
+    for key in ("observations", "actions", "rewards"):
+        if not np.issubdtype(arrays[key].dtype, np.number):
+            raise RMError(f"{path}: {key} must be numeric, got dtype {arrays[key].dtype}")
+    if not np.isfinite(obs).all():
+        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
+    return arrays
+
+
 def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
     """Transitions of a D4RL file in TorchRL's offline layout; an episode of T steps gives T-1.
 
@@ -58,31 +93,10 @@ def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
     D4RL terminal flag of the step (the flag of an episode's dropped last step goes to its last
     transition); the last transition of an episode that does not end in a terminal is truncated.
     """
-    import h5py
-
     path = Path(path)
-    if not path.is_file():
-        raise RMError(f"dataset file {path} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
-    with f:
-        obs = _read(f, "observations", path)
-        actions = _read(f, "actions", path)
-        rewards = _read(f, "rewards", path)
-        terminals = _read(f, "terminals", path).astype(bool)
-        timeouts = f["timeouts"][()].astype(bool) if "timeouts" in f else np.zeros_like(terminals)
-    n = obs.shape[0]
-    if n == 0:
-        raise RMError(f"{path} holds no steps")
-    if obs.ndim != 2 or actions.ndim != 2:
-        raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
-    for name, arr in (("actions", actions), ("rewards", rewards), ("terminals", terminals), ("timeouts", timeouts)):
-        if arr.shape[0] != n:
-            raise RMError(f"{path}: {name} has {arr.shape[0]} rows but observations has {n}")
-    if not np.isfinite(obs).all():
-        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
+    arrays = read_d4rl_arrays(path)
+    obs, actions, rewards = arrays["observations"], arrays["actions"], arrays["rewards"]
+    terminals, timeouts = arrays["terminals"], arrays["timeouts"]
     ends, _ = episode_end_flags(obs, terminals, timeouts, episode_ends)
     ends = ends.copy()
     ends[-1] = True

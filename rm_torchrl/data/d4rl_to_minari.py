@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from rm_torchrl.data.d4rl import _read, episode_end_flags
+from rm_torchrl.data.d4rl import episode_end_flags, read_d4rl_arrays
 from rm_torchrl.errors import RMError
 
 #: Key of the dataset metadata that records how the dataset was made.
@@ -54,7 +54,7 @@ def import_d4rl(
     """
     dataset_id = check_dataset_name(name)
     path = Path(path)
-    arrays = _read_d4rl(path)
+    arrays = read_d4rl_arrays(path)
     obs, actions = arrays["observations"], arrays["actions"]
     ends, used = episode_end_flags(obs, arrays["terminals"], arrays["timeouts"], episode_ends)
     ends = ends.copy()
@@ -115,39 +115,6 @@ def check_dataset_name(name: str) -> str:
     return name
 
 
-def _read_d4rl(path: Path) -> dict[str, np.ndarray]:
-    """The D4RL arrays of ``path``, checked like ``load_d4rl_hdf5`` checks them."""
-    import h5py
-
-    if not path.is_file():
-        raise RMError(f"dataset file {path} does not exist")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
-    with f:
-        arrays = {key: _read(f, key, path) for key in ("observations", "actions", "rewards", "terminals")}
-        arrays["timeouts"] = f["timeouts"][()] if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
-    arrays["terminals"] = arrays["terminals"].astype(bool)
-    arrays["timeouts"] = arrays["timeouts"].astype(bool)
-    obs, actions = arrays["observations"], arrays["actions"]
-    n = obs.shape[0] if obs.ndim else 0
-    if n == 0:
-        raise RMError(f"{path} holds no steps")
-    if obs.ndim != 2 or actions.ndim != 2:
-        raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
-    for key in ("actions", "rewards", "terminals", "timeouts"):
-        if arrays[key].shape[0] != n:
-            raise RMError(f"{path}: {key} has {arrays[key].shape[0]} rows but observations has {n}")
-    for key in ("rewards", "terminals", "timeouts"):
-        if arrays[key].ndim != 1:
-            raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
-    for key in ("observations", "actions", "rewards"):
-        if not np.issubdtype(arrays[key].dtype, np.number):
-            raise RMError(f"{path}: {key} must be numeric, got dtype {arrays[key].dtype}")
-    if not np.isfinite(obs).all():
-        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
-    return arrays
 
 
 def _episode_buffer(arrays: dict, first: int, last: int):
