@@ -7,9 +7,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import CQLLoss, IQLLoss, LossModule, SoftUpdate
+from torchrl.objectives import CQLLoss, LossModule, SoftUpdate
 
 from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.iql import SharedForwardIQLLoss
 from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 
 
@@ -67,7 +68,7 @@ def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) 
     qvalue = make_qvalue(obs_keys, obs_dim, action_dim, hidden)
     if m.name == "iql":
         value = make_value(obs_keys, obs_dim, hidden)
-        loss = IQLLoss(actor, qvalue, value, num_qvalue_nets=2, loss_function="l2",
+        loss = SharedForwardIQLLoss(actor, qvalue, value, num_qvalue_nets=2, loss_function="l2",
                        temperature=m.temperature, expectile=m.expectile)
         opt = [
             _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
