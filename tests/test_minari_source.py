@@ -234,3 +234,25 @@ def test_rmrl_refine_reads_a_local_minari_dataset(minari_cache, tmp_path):
         # microwave (100 * episode + t) reaches its goal 1.0 only at t = 1 of episode 0
         assert report["stages"] == {"original": TOTAL_STEPS, "split": 1, "ordered": 1, "shorter": 1}
         assert report["groups"] == {"e0->microwave": 1}
+
+
+def test_training_on_a_dict_observation_dataset(minari_cache, tmp_path):
+    """The trainer reads the policy vector from ('observation', 'observation') of dict datasets."""
+    from rm_torchrl.train import load_recipe, train
+
+    _write_dataset("tiny/dict-v0", dict_obs=True)
+    spec = tmp_path / "events.yaml"
+    spec.write_text(
+        "events:\n"
+        "  - {name: microwave, key: [observation, achieved_goal, microwave],\n"
+        "     target_key: [observation, desired_goal, microwave], reduce: norm, op: '<', value: 0.5}\n"
+    )
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(
+        f"name: dict\nout: {tmp_path / 'runs'}\ndata: {{source: tiny/dict-v0, events: {spec}}}\n"
+        "network: {hidden: [8]}\ntrainer: {steps: 5, batch_size: 4, log_every: 5, threads: 1}\n"
+    )
+    run_dir = train(load_recipe(recipe), progress=False)
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert state["step"] == 5
+    assert state["obs_loc"].shape == (2,)  # the 2-dim 'observation' entry of the dict
