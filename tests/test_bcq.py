@@ -410,15 +410,20 @@ def test_recipe_build_method():
     from rm_torchrl.train.config import MethodConfig, Recipe
     from rm_torchrl.train.losses import LOSS_TERMS, build_method
 
-    recipe = Recipe(method=MethodConfig(name="bcq", bcq_lambda=0.5, bcq_phi=0.1))
+    recipe = Recipe(method=MethodConfig(name="bcq", bcq_lambda=0.5, bcq_phi=0.1, bcq_vae_hidden=[32, 32]))
     recipe.trainer.gamma = 0.95
+    recipe.network.hidden = [24, 16]
+    recipe.optim.lr_actor, recipe.optim.lr_critic, recipe.optim.lr_value = 1e-3, 2e-3, 3e-3
     keys, widths = LAYOUTS["two_keys"]
     method = build_method(recipe, keys, sum(widths.values()), ACT)
     loss = method.loss
     assert isinstance(loss, BCQLoss) and loss.lmbda == 0.5 and loss.actor_network.phi == 0.1
     assert float(loss.value_estimator.gamma) == pytest.approx(0.95)
     assert len(method.optimizers) == 3
-    assert all(g["lr"] == 1e-3 and g["weight_decay"] == 0 for o in method.optimizers for g in o.param_groups)
+    assert [o.param_groups[0]["lr"] for o in method.optimizers] == [3e-3, 1e-3, 2e-3]  # vae, actor, critics
+    assert all(g["weight_decay"] == 0 for o in method.optimizers for g in o.param_groups)
+    widths_of = [p.shape[0] for p in loss.actor_network_params.flatten_keys().values() if p.ndim == 2]
+    assert widths_of[:2] == [24, 16], widths_of
     td = make_batch(widths, batch=16)
     out = loss(td)
     sum(out[t] for t in LOSS_TERMS["bcq"]).backward()

@@ -661,11 +661,11 @@ def make_bcq_optimizers(
 def build_bcq(recipe, obs_keys: list, obs_dim: int, action_dim: int):
     """BCQ for the recipe trainer (``rm_torchrl.train.losses.build_method``): a ``Method``.
 
-    Follows the authors' setup rather than the IQL-oriented recipe defaults: reference network
-    sizes (VAE 750-750, perturbation model and critics 400-300), actions in ``[-1, 1]``, one
-    weight-decay-free Adam with ``lr = 1e-3`` per network group. From the recipe it takes
-    ``method.bcq_lambda``, ``method.bcq_phi``, ``trainer.gamma``, ``trainer.tau`` and
-    ``optim.fused``.
+    Everything comes from the recipe: ``network.hidden`` for the perturbation model and the
+    critics, ``method.bcq_vae_hidden`` for the VAE, ``optim.lr_value`` / ``lr_actor`` /
+    ``lr_critic`` for the VAE / perturbation model / critics, ``method.bcq_lambda`` and
+    ``method.bcq_phi``; the BCQ recipes carry the authors' values (400-300, 750-750, lr 1e-3).
+    Actions lie in ``[-1, 1]``; BCQ uses no weight decay.
     """
     from torchrl.objectives import SoftUpdate
 
@@ -674,7 +674,12 @@ def build_bcq(recipe, obs_keys: list, obs_dim: int, action_dim: int):
     loss = make_bcq_loss(
         obs_dim, action_dim, observation_keys=list(obs_keys), max_action=1.0,
         phi=recipe.method.bcq_phi, lmbda=recipe.method.bcq_lambda,
+        vae_hidden=recipe.method.bcq_vae_hidden, actor_hidden=recipe.network.hidden,
+        critic_hidden=recipe.network.hidden,
     )
     loss.make_value_estimator(ValueEstimators.TD0, gamma=recipe.trainer.gamma)
-    optimizers = list(make_bcq_optimizers(loss, fused=recipe.optim.fused).values())
+    o = recipe.optim
+    optimizers = list(make_bcq_optimizers(
+        loss, lr_vae=o.lr_value, lr_actor=o.lr_actor, lr_qvalue=o.lr_critic, fused=o.fused
+    ).values())
     return Method(loss, optimizers, loss.make_policy(), SoftUpdate(loss, tau=recipe.trainer.tau))

@@ -43,6 +43,7 @@ class MethodConfig:
     cql_alpha: float = 5.0  # CQL min-Q weight (Kumar et al. 2020, Adroit/kitchen)
     bcq_lambda: float = 0.75  # BCQ soft clipped double-Q
     bcq_phi: float = 0.05  # BCQ perturbation range
+    bcq_vae_hidden: list = field(default_factory=lambda: [750, 750])  # BCQ's VAE
     actor_dropout: float = 0.1  # IQL's actor dropout on Adroit and kitchen
 
 
@@ -229,8 +230,9 @@ def validate(recipe: Recipe) -> None:
         raise RMError("recipe: trainer.gamma and trainer.tau must lie in (0, 1]")
     if not 0 < recipe.method.expectile < 1:
         raise RMError(f"recipe: method.expectile must lie in (0, 1), got {recipe.method.expectile}")
-    if not recipe.network.hidden or not all(isinstance(h, int) and h > 0 for h in recipe.network.hidden):
-        raise RMError(f"recipe: network.hidden must be a list of positive ints, got {recipe.network.hidden}")
+    for key, hidden in (("network.hidden", recipe.network.hidden), ("method.bcq_vae_hidden", recipe.method.bcq_vae_hidden)):
+        if not hidden or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hidden):
+            raise RMError(f"recipe: {key} must be a list of positive ints, got {hidden}")
     for key in ("lr_actor", "lr_critic", "lr_value"):
         if getattr(recipe.optim, key) <= 0:
             raise RMError(f"recipe: optim.{key} must be positive")
