@@ -160,3 +160,33 @@ def test_demo_main_job_on_built_data(tmp_path, capsys):
         rows = list(csv.DictReader((tmp_path / "demo" / "runs" / run / "eval.csv").open()))
         assert int(rows[-1]["step"]) == 20
     assert (tmp_path / "demo" / "report" / "learning_curves.png").stat().st_size > 0
+
+
+def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkeypatch):
+    """A run that dies between checkpoints resumes from the last one; rows logged after it are dropped."""
+    import rm_torchrl.train.trainer as trainer_module
+
+    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight"])
+    train(straight, progress=False)
+
+    real_step, calls = trainer_module.gradient_step, {"n": 0}
+
+    def dying_step(*args):
+        calls["n"] += 1
+        if calls["n"] == 131:
+            raise SystemExit("killed")  # not KeyboardInterrupt: no checkpoint on the way out
+        return real_step(*args)
+
+    monkeypatch.setattr(trainer_module, "gradient_step", dying_step)
+    killed = load_recipe(make_recipe(tmp_path, dataset), ["name=killed"])
+    with pytest.raises(SystemExit):
+        train(killed, progress=False)
+    assert torch.load(killed.run_dir / "checkpoint.pt", weights_only=False)["step"] == 100
+    monkeypatch.setattr(trainer_module, "gradient_step", real_step)
+    run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["name=killed", "resume=true"]), progress=False)
+    steps = [int(line.split(",")[0]) for line in (run_dir / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
+    assert steps == list(range(20, 201, 20))
+    a = torch.load(straight.run_dir / "checkpoint.pt", weights_only=False)["loss"]
+    b = torch.load(run_dir / "checkpoint.pt", weights_only=False)["loss"]
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
