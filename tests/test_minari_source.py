@@ -215,6 +215,17 @@ def test_single_episode_dataset_is_an_rm_error(minari_cache):
         load_minari("tiny/one-v0")
 
 
+def _microwave_spec(tmp_path):
+    """An event on the dict observation: the microwave's achieved goal within 0.5 of its desired one."""
+    spec = tmp_path / "events.yaml"
+    spec.write_text(
+        "events:\n"
+        "  - {name: microwave, key: [observation, achieved_goal, microwave],\n"
+        "     target_key: [observation, desired_goal, microwave], reduce: norm, op: '<', value: 0.5}\n"
+    )
+    return spec
+
+
 def test_rmrl_refine_reads_a_local_minari_dataset(minari_cache, tmp_path):
     """The whole CLI path on a dict-observation dataset: nested event keys, target_key, minari: prefix."""
     import json
@@ -222,12 +233,7 @@ def test_rmrl_refine_reads_a_local_minari_dataset(minari_cache, tmp_path):
     from rm_torchrl.cli.main import main
 
     _write_dataset("tiny/dict-v0", dict_obs=True)
-    spec = tmp_path / "events.yaml"
-    spec.write_text(
-        "events:\n"
-        "  - {name: microwave, key: [observation, achieved_goal, microwave],\n"
-        "     target_key: [observation, desired_goal, microwave], reduce: norm, op: '<', value: 0.5}\n"
-    )
+    spec = _microwave_spec(tmp_path)
     for source, out in (("tiny/dict-v0", "a"), ("minari:tiny/dict-v0", "b")):
         assert main(["refine", "--dataset", source, "--events", str(spec), "--out", str(tmp_path / out)]) == 0
         report = json.loads((tmp_path / out / "report.json").read_text())
@@ -241,12 +247,7 @@ def test_training_on_a_dict_observation_dataset(minari_cache, tmp_path):
     from rm_torchrl.train import load_recipe, train
 
     _write_dataset("tiny/dict-v0", dict_obs=True)
-    spec = tmp_path / "events.yaml"
-    spec.write_text(
-        "events:\n"
-        "  - {name: microwave, key: [observation, achieved_goal, microwave],\n"
-        "     target_key: [observation, desired_goal, microwave], reduce: norm, op: '<', value: 0.5}\n"
-    )
+    spec = _microwave_spec(tmp_path)
     recipe = tmp_path / "recipe.yaml"
     recipe.write_text(
         f"name: dict\nout: {tmp_path / 'runs'}\ndata: {{source: tiny/dict-v0, events: {spec}}}\n"
