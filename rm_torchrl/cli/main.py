@@ -74,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
     _import_arguments(p)
     p.set_defaults(run="rm_torchrl.cli.import_d4rl:run")
 
+    from rm_torchrl.cli.generate import add_arguments as _generate_arguments
+
+    p = sub.add_parser("generate", help="record scripted demonstrations as a local Minari dataset (atomic)")
+    _generate_arguments(p)
+    p.set_defaults(run="rm_torchrl.cli.generate:run")
+
     p = sub.add_parser("demo", help="the main job: refine door data, train IQL with and without the RM, "
                                      "evaluate in MuJoCo, write the report (no download)")
     p.add_argument("--dataset", help="a door D4RL .hdf5 (default: ../shared/data/d4rl/door-human-v0.hdf5 if "

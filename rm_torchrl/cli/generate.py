@@ -1,0 +1,63 @@
+"""``rmrl generate``: record scripted demonstrations as a local Minari dataset, atomically, with a progress bar."""
+from __future__ import annotations
+
+import sys
+
+from tqdm import tqdm
+
+from rm_torchrl.errors import RMError
+
+
+def add_arguments(p) -> None:
+    """The flags of ``rmrl generate`` (for ``cli/main.py``)."""
+    from rm_torchrl.generate import GENERATORS
+
+    p.add_argument("generator", choices=sorted(GENERATORS), help="what to demonstrate: " + "; ".join(
+        f"{name}: {g.description}" for name, g in sorted(GENERATORS.items())))
+    p.add_argument("--out-name", required=True, metavar="NAME",
+                   help="Minari dataset id to write, e.g. rmrl/relocate-human-v0 (namespace/name-v<N>)")
+    p.add_argument("--episodes", type=int, default=25, help="successful episodes to keep (default 25)")
+    p.add_argument("--seed", type=int, default=0, help="the dataset is a function of the seed (default 0)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes simulating in parallel; the dataset does not depend on it (default 1)")
+    p.add_argument("--max-steps", type=int, default=400, help="episode step limit (default 400)")
+    p.add_argument("--noise", type=float, default=None,
+                   help="std of the action noise on wrist and fingers (default: the generator's, 0.02)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset of that name")
+
+
+def run(args) -> int:
+    import minari
+    from minari.storage import get_dataset_path
+
+    from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
+
+    if args.noise is not None and args.noise < 0:
+        raise RMError(f"--noise must be >= 0, got {args.noise}")
+    policy_kwargs = {} if args.noise is None else {"noise": args.noise}
+    bar = None
+
+    def progress(kept: int, total: int, attempts: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, desc=f"generate {args.generator}", unit="episode", file=sys.stderr, leave=False)
+        bar.set_postfix_str(f"{attempts} attempts")
+        bar.update(kept - bar.n)
+
+    try:
+        dataset_id = generate_dataset(GENERATORS[args.generator], args.out_name, episodes=args.episodes,
+                                      seed=args.seed, workers=args.workers, max_steps=args.max_steps,
+                                      overwrite=args.overwrite, policy_kwargs=policy_kwargs, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    dataset = minari.load_dataset(dataset_id)
+    record = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {})
+    length = record.get("episode_length", {})
+    print(f"generated {dataset.total_episodes:,} successful episodes ({dataset.total_steps:,} transitions) of "
+          f"{args.generator} in {record.get('attempts', '?')} attempts; episode length mean "
+          f"{length.get('mean', float('nan')):.1f}, min {length.get('min', '?')}, max {length.get('max', '?')}")
+    print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
+    if dataset.total_episodes >= 2:
+        print(f"refine it with: rmrl refine --dataset {dataset_id} --events relocate --out ...")
+    return 0

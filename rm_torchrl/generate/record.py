@@ -1,0 +1,309 @@
+"""Record a scripted policy's successful episodes as a local Minari dataset, atomically, on 1 or more cores.
+
+Episode attempts are numbered 0, 1, 2, ...; attempt ``k`` resets the environment with a seed and
+gives the policy a ``numpy`` generator, both derived from ``(seed, k)`` only. The dataset holds the
+first ``episodes`` successful attempts in attempt order, so it depends on the seed alone: the same
+seed gives the same dataset, with any number of workers (workers run attempts in parallel, the
+parent writes them in order).
+
+The policy protocol (see ``rm_torchrl.generate.relocate.RelocateController``): ``reset(env, rng)``
+before each episode, ``act(env) -> action`` each step, optionally ``finished(env) -> bool`` (end the
+episode early, e.g. after holding the goal), ``style`` (a dict of the episode's drawn parameters,
+stored as episode metadata) and ``settings() -> dict`` (stored in the dataset metadata). An episode
+ends when the policy is finished, the environment terminates, or after ``max_steps`` steps
+(truncated); it is kept when ``info["success"]`` holds on its last step.
+
+The dataset is built by ``minari.create_dataset_from_buffers`` in a hidden temporary cache next to
+the real one (``<cache>/.rmrl-generate-*``) and renamed into place only once it is complete and
+checked, as ``rm_torchrl.data.d4rl_to_minari`` does (whose helpers this module reuses): a failure or
+an interruption leaves no dataset behind, and with ``overwrite`` the previous one stays in place.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import warnings
+from collections import deque
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from rm_torchrl.errors import RMError
+
+# The Minari-writing helpers of rm_torchrl.data.d4rl_to_minari are imported where they are used: that
+# package imports torch, which would add seconds to the start of every worker process.
+
+#: Key of the dataset metadata that records how the dataset was generated.
+GENERATE_METADATA_KEY = "rm_torchrl_generate"
+_TMP_PREFIX = ".rmrl-generate-"
+
+
+@dataclass(frozen=True)
+class Generator:
+    """A named recipe for demonstrations: an environment and a (picklable) factory of scripted policies."""
+
+    name: str
+    env_id: str
+    policy: Callable[..., Any]
+    description: str = ""
+    env_kwargs: dict = field(default_factory=dict)
+
+
+@dataclass
+class Episode:
+    """One attempt's raw data (T+1 observations, T actions) and outcome."""
+
+    attempt: int
+    env_seed: int
+    success: bool
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminated: bool
+    style: dict
+
+
+def attempt_seeds(seed: int, attempt: int) -> tuple[int, np.random.SeedSequence]:
+    """The env reset seed and the policy's seed sequence of attempt ``attempt`` (functions of both only)."""
+    env_seed = int(np.random.SeedSequence([int(seed), int(attempt), 0]).generate_state(1)[0])
+    return env_seed, np.random.SeedSequence([int(seed), int(attempt), 1])
+
+
+def make_env(env_id: str, max_steps: int, env_kwargs: dict | None = None):
+    """``gym.make(env_id, max_episode_steps=max_steps)`` with gymnasium-robotics registered."""
+    import gymnasium as gym
+
+    try:
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+    except ImportError:
+        pass
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r".*reward functions were updated.*")
+        try:
+            return gym.make(env_id, max_episode_steps=int(max_steps), **(env_kwargs or {}))
+        except Exception as err:  # unknown id, missing dependency, bad kwargs
+            raise RMError(f"cannot make environment {env_id!r}: {type(err).__name__}: {err}") from None
+
+
+def run_episode(env, policy, seed: int, attempt: int) -> Episode:
+    """Run one attempt of ``policy`` in ``env`` (whose TimeLimit bounds its length)."""
+    env_seed, policy_seed = attempt_seeds(seed, attempt)
+    obs, _ = env.reset(seed=env_seed)
+    policy.reset(env, np.random.default_rng(policy_seed))
+    finished = getattr(policy, "finished", None)
+    observations, actions, rewards = [obs], [], []
+    terminated = truncated = False
+    info: dict = {}
+    while not (terminated or truncated):
+        action = policy.act(env)
+        obs, reward, terminated, truncated, info = env.step(action)
+        observations.append(obs)
+        actions.append(action)
+        rewards.append(reward)
+        if finished is not None and finished(env):
+            break
+    style = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in dict(getattr(policy, "style", {})).items()}
+    return Episode(attempt, env_seed, bool(info.get("success", False)), np.asarray(observations),
+                   np.asarray(actions, dtype=np.float32), np.asarray(rewards, dtype=np.float64),
+                   bool(terminated), style)
+
+
+# one environment and policy per worker process, made on first use
+_WORKER: dict = {}
+
+
+def _worker_attempt(generator: Generator, policy_kwargs: dict, max_steps: int, seed: int, attempt: int) -> Episode:
+    key = (generator.name, max_steps, repr(sorted(policy_kwargs.items())))
+    if _WORKER.get("key") != key:
+        if "env" in _WORKER:
+            _WORKER["env"].close()
+        _WORKER.update(key=key, env=make_env(generator.env_id, max_steps, generator.env_kwargs),
+                       policy=generator.policy(**policy_kwargs))
+    return run_episode(_WORKER["env"], _WORKER["policy"], seed, attempt)
+
+
+def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1, max_steps: int = 400,
+            policy_kwargs: dict | None = None, max_attempts: int | None = None,
+            progress: Callable[[int, int, int], None] | None = None) -> tuple[list[Episode], int]:
+    """The first ``episodes`` successful attempts, in attempt order, and the number of attempts made.
+
+    ``progress(kept, episodes, attempts)`` is called after every attempt. Raises RMError when
+    ``max_attempts`` (default ``4 * episodes + 20``) attempts do not give enough successes.
+    """
+    policy_kwargs = dict(policy_kwargs or {})
+    max_attempts = int(max_attempts if max_attempts is not None else 4 * episodes + 20)
+    kept: list[Episode] = []
+    attempts = 0
+
+    def take(episode: Episode) -> None:
+        nonlocal attempts
+        attempts += 1
+        if episode.success and len(kept) < episodes:
+            kept.append(episode)
+        if progress is not None:
+            progress(len(kept), episodes, attempts)
+
+    if workers <= 1:
+        env = make_env(generator.env_id, max_steps, generator.env_kwargs)
+        try:
+            policy = generator.policy(**policy_kwargs)
+            while len(kept) < episodes and attempts < max_attempts:
+                take(run_episode(env, policy, seed, attempts))
+        finally:
+            env.close()
+    else:
+        # a window of attempts in flight, consumed in attempt order: the result does not depend on
+        # which worker ran what, and at most a window's worth of attempts is wasted at the end
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"))
+        try:
+            pending: deque = deque()
+            submitted = 0
+            while len(kept) < episodes and attempts < max_attempts:
+                while len(pending) < 2 * workers and submitted < max_attempts:
+                    pending.append(pool.submit(_worker_attempt, generator, policy_kwargs, max_steps, seed, submitted))
+                    submitted += 1
+                take(pending.popleft().result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+    if len(kept) < episodes:
+        raise RMError(f"only {len(kept)} of {attempts} attempts of {generator.name} succeeded, {episodes} needed; "
+                      "nothing was written (raise --max-steps or lower --episodes)")
+    return kept, attempts
+
+
+def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: int = 0, workers: int = 1,
+                     max_steps: int = 400, overwrite: bool = False, policy_kwargs: dict | None = None,
+                     max_attempts: int | None = None,
+                     progress: Callable[[int, int, int], None] | None = None) -> str:
+    """Record ``episodes`` successful episodes of ``generator`` as the local Minari dataset ``name``; return its id.
+
+    See the module docstring for seeding, episode ends and atomicity; ``workers`` processes run
+    attempts in parallel (the dataset does not depend on it).
+    """
+    from rm_torchrl.data.d4rl_to_minari import _cache_root, _check_target, _versions, check_dataset_name
+
+    dataset_id = check_dataset_name(name)
+    if int(episodes) < 1:
+        raise RMError(f"--episodes must be at least 1, got {episodes}")
+    if int(workers) < 1:
+        raise RMError(f"--workers must be at least 1, got {workers}")
+    if int(max_steps) < 1:
+        raise RMError(f"--max-steps must be at least 1, got {max_steps}")
+    cache = _cache_root()
+    final = cache / dataset_id
+    _check_target(final, dataset_id, cache, overwrite)  # fail before minutes of simulation, not after
+
+    kept, attempts = collect(generator, int(episodes), int(seed), int(workers), int(max_steps), policy_kwargs,
+                             max_attempts, progress)
+    policy = generator.policy(**(policy_kwargs or {}))
+    settings = policy.settings() if hasattr(policy, "settings") else dict(policy_kwargs or {})
+    lengths = [len(ep.actions) for ep in kept]
+    versions = _versions()
+    record = {
+        "generator": generator.name,
+        "policy": getattr(policy, "name", type(policy).__name__),
+        "env_id": generator.env_id,
+        "env_kwargs": dict(generator.env_kwargs),
+        "seed": int(seed),
+        "episodes": len(kept),
+        "transitions": int(sum(lengths)),
+        "attempts": attempts,
+        "success_rate": len(kept) / attempts,
+        "max_steps": int(max_steps),
+        "episode_length": {"mean": float(np.mean(lengths)), "min": int(min(lengths)), "max": int(max(lengths))},
+        "policy_settings": settings,
+        "seeding": "attempt k resets the env with SeedSequence([seed, k, 0]) and seeds the policy with "
+                   "SeedSequence([seed, k, 1]); the first `episodes` successful attempts are kept, in order",
+        "versions": versions,
+        "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    env = make_env(generator.env_id, max_steps, generator.env_kwargs)
+    try:
+        _write(dataset_id, final, cache, overwrite, kept, env, record)
+    finally:
+        env.close()
+    return dataset_id
+
+
+def _buffer(episode: Episode):
+    from minari.data_collector import EpisodeBuffer
+
+    n = len(episode.actions)
+    terminations = np.zeros(n, bool)
+    terminations[-1] = episode.terminated
+    truncations = np.zeros(n, bool)
+    truncations[-1] = not episode.terminated
+    return EpisodeBuffer(seed=episode.env_seed, observations=episode.observations, actions=episode.actions,
+                         rewards=episode.rewards, terminations=terminations, truncations=truncations)
+
+
+def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: list[Episode], env, record: dict) -> None:
+    """Build the dataset in a hidden temporary cache, check it, and move it into place (see the module doc)."""
+    import minari
+    from rm_torchrl.data.d4rl_to_minari import _datasets_path, _register_namespace, _requirements
+    from minari.dataset.minari_dataset import MinariDataset
+
+    tmp_root = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=cache))
+    old = tmp_root / ".previous"
+    made: list[Path] = []
+    versions = record["versions"]
+    try:
+        with _datasets_path(tmp_root), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
+            dataset = minari.create_dataset_from_buffers(
+                dataset_id,
+                [_buffer(ep) for ep in kept],
+                env=env,
+                algorithm_name=f"scripted policy {record['policy']} ({record['generator']})",
+                author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
+                code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/",
+                description=(
+                    f"{record['episodes']} successful scripted demonstrations in {record['env_id']} made by "
+                    f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
+                    f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
+                    f"{record['seeding']}."
+                ),
+                requirements=_requirements(env),
+                jpeg_encoding=False,
+            )
+            dataset.storage.update_episode_metadata(
+                [{"attempt": ep.attempt, "env_seed": ep.env_seed, "steps": len(ep.actions), **ep.style}
+                 for ep in kept]
+            )
+            dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
+        built = tmp_root / dataset_id
+        check = MinariDataset(built / "data")
+        if (check.total_episodes, check.total_steps) != (record["episodes"], record["transitions"]):
+            raise RMError(
+                f"the written dataset holds {check.total_episodes} episodes and {check.total_steps} steps, "
+                f"expected {record['episodes']} and {record['transitions']}; nothing was written"
+            )
+        for parent in reversed(final.relative_to(cache).parents):
+            if parent != Path(".") and not (cache / parent).exists():
+                (cache / parent).mkdir()
+                made.append(cache / parent)
+        if final.exists():
+            if not overwrite:
+                raise RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
+            os.replace(final, old)
+        os.replace(built, final)
+    except BaseException:
+        if old.exists() and not final.exists():
+            os.replace(old, final)
+        for parent in reversed(made):
+            try:
+                parent.rmdir()
+            except OSError:
+                pass
+        raise
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    _register_namespace(dataset_id)
