@@ -134,57 +134,30 @@ def _episode_buffer(arrays: dict, first: int, last: int):
     )
 
 
-def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, observation_space, action_space,
-                    record, progress) -> None:
-    import minari
+@contextmanager
+def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool, episodes: int, transitions: int,
+                      prefix: str):
+    """Minari writes ``dataset_id`` into a hidden temporary cache inside the ``with``; then it is checked.
+
+    Only a dataset holding the expected ``episodes`` and ``transitions`` is moved to ``final``; on any
+    failure or interruption the cache is left as it was (a replaced copy is put back).
+    """
     from minari.dataset.minari_dataset import MinariDataset
 
-    tmp_root = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=cache))
+    tmp_root = Path(tempfile.mkdtemp(prefix=prefix, dir=cache))
     old = tmp_root / ".previous"
     made: list[Path] = []
     try:
-        total = len(episodes)
-        chunk = max(1, total // 100)
-        with _datasets_path(tmp_root):
-            with warnings.catch_warnings():
-                # author_email / eval_env / env_spec "is None" notices: there is nothing better to give
-                warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
-                dataset = minari.create_dataset_from_buffers(
-                    dataset_id,
-                    [_episode_buffer(arrays, *episodes[0])],
-                    env=env,
-                    algorithm_name=f"D4RL {record['source_file']} (human demonstrations or policy rollouts, as in D4RL)",
-                    author={"D4RL (Fu et al., 2020)", f"converted by rm_torchrl {record['versions']['rm_torchrl']}"},
-                    code_permalink=f"rm_torchrl=={record['versions']['rm_torchrl']}: rm_torchrl/data/d4rl_to_minari.py",
-                    action_space=action_space,
-                    observation_space=observation_space,
-                    description=(
-                        f"D4RL dataset {record['source_file']} (sha256 {record['source_sha256']}) converted to Minari "
-                        f"by `rmrl import-d4rl`, episodes ended by {record['episode_ends']}. {record['layout']}. "
-                        "D4RL data is released under CC BY 4.0 (Fu et al., D4RL, 2020)."
-                    ),
-                    requirements=_requirements(env),
-                    jpeg_encoding=False,
-                )
-                if progress is not None:
-                    progress(1, total)
-                for start in range(1, total, chunk):
-                    part = episodes[start:start + chunk]
-                    dataset.update_dataset_from_buffer([_episode_buffer(arrays, *ep) for ep in part])
-                    if progress is not None:
-                        progress(start + len(part), total)
-                dataset.storage.update_episode_metadata(
-                    [{"d4rl_first_row": first, "d4rl_last_row": last, "d4rl_steps": last - first + 1,
-                      "ends_with": "terminated" if arrays["terminals"][last - 1] or arrays["terminals"][last]
-                      else "truncated"} for first, last in episodes]
-                )
-                dataset.storage.update_metadata({IMPORT_METADATA_KEY: record})
+        with _datasets_path(tmp_root), warnings.catch_warnings():
+            # author_email / eval_env / env_spec "is None" notices: there is nothing better to give
+            warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
+            yield
         built = tmp_root / dataset_id
         check = MinariDataset(built / "data")
-        if (check.total_episodes, check.total_steps) != (record["episodes"], record["transitions"]):
+        if (check.total_episodes, check.total_steps) != (episodes, transitions):
             raise RMError(
                 f"the written dataset holds {check.total_episodes} episodes and {check.total_steps} steps, "
-                f"expected {record['episodes']} and {record['transitions']}; nothing was written"
+                f"expected {episodes} and {transitions}; nothing was written"
             )
         for parent in reversed(final.relative_to(cache).parents):
             if parent != Path(".") and not (cache / parent).exists():
@@ -207,6 +180,46 @@ def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, 
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     _register_namespace(dataset_id)
+
+
+def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, observation_space, action_space,
+                    record, progress) -> None:
+    import minari
+
+    total = len(episodes)
+    chunk = max(1, total // 100)
+    with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"],
+                           _TMP_PREFIX):
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id,
+            [_episode_buffer(arrays, *episodes[0])],
+            env=env,
+            algorithm_name=f"D4RL {record['source_file']} (human demonstrations or policy rollouts, as in D4RL)",
+            author={"D4RL (Fu et al., 2020)", f"converted by rm_torchrl {record['versions']['rm_torchrl']}"},
+            code_permalink=f"rm_torchrl=={record['versions']['rm_torchrl']}: rm_torchrl/data/d4rl_to_minari.py",
+            action_space=action_space,
+            observation_space=observation_space,
+            description=(
+                f"D4RL dataset {record['source_file']} (sha256 {record['source_sha256']}) converted to Minari "
+                f"by `rmrl import-d4rl`, episodes ended by {record['episode_ends']}. {record['layout']}. "
+                "D4RL data is released under CC BY 4.0 (Fu et al., D4RL, 2020)."
+            ),
+            requirements=_requirements(env),
+            jpeg_encoding=False,
+        )
+        if progress is not None:
+            progress(1, total)
+        for start in range(1, total, chunk):
+            part = episodes[start:start + chunk]
+            dataset.update_dataset_from_buffer([_episode_buffer(arrays, *ep) for ep in part])
+            if progress is not None:
+                progress(start + len(part), total)
+        dataset.storage.update_episode_metadata(
+            [{"d4rl_first_row": first, "d4rl_last_row": last, "d4rl_steps": last - first + 1,
+              "ends_with": "terminated" if arrays["terminals"][last - 1] or arrays["terminals"][last]
+              else "truncated"} for first, last in episodes]
+        )
+        dataset.storage.update_metadata({IMPORT_METADATA_KEY: record})
 
 
 def _register_namespace(dataset_id: str) -> None:

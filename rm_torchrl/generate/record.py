@@ -20,9 +20,6 @@ an interruption leaves no dataset behind, and with ``overwrite`` the previous on
 """
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 import warnings
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -248,62 +245,29 @@ def _buffer(episode: Episode):
 def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: list[Episode], env, record: dict) -> None:
     """Build the dataset in a hidden temporary cache, check it, and move it into place (see the module doc)."""
     import minari
-    from rm_torchrl.data.d4rl_to_minari import _datasets_path, _register_namespace, _requirements
-    from minari.dataset.minari_dataset import MinariDataset
+    from rm_torchrl.data.d4rl_to_minari import _requirements, building_in_cache
 
-    tmp_root = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX, dir=cache))
-    old = tmp_root / ".previous"
-    made: list[Path] = []
     versions = record["versions"]
-    try:
-        with _datasets_path(tmp_root), warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
-            dataset = minari.create_dataset_from_buffers(
-                dataset_id,
-                [_buffer(ep) for ep in kept],
-                env=env,
-                algorithm_name=f"scripted policy {record['policy']} ({record['generator']})",
-                author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
-                code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/",
-                description=(
-                    f"{record['episodes']} successful scripted demonstrations in {record['env_id']} made by "
-                    f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
-                    f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
-                    f"{record['seeding']}."
-                ),
-                requirements=_requirements(env),
-                jpeg_encoding=False,
-            )
-            dataset.storage.update_episode_metadata(
-                [{"attempt": ep.attempt, "env_seed": ep.env_seed, "steps": len(ep.actions), **ep.style}
-                 for ep in kept]
-            )
-            dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
-        built = tmp_root / dataset_id
-        check = MinariDataset(built / "data")
-        if (check.total_episodes, check.total_steps) != (record["episodes"], record["transitions"]):
-            raise RMError(
-                f"the written dataset holds {check.total_episodes} episodes and {check.total_steps} steps, "
-                f"expected {record['episodes']} and {record['transitions']}; nothing was written"
-            )
-        for parent in reversed(final.relative_to(cache).parents):
-            if parent != Path(".") and not (cache / parent).exists():
-                (cache / parent).mkdir()
-                made.append(cache / parent)
-        if final.exists():
-            if not overwrite:
-                raise RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
-            os.replace(final, old)
-        os.replace(built, final)
-    except BaseException:
-        if old.exists() and not final.exists():
-            os.replace(old, final)
-        for parent in reversed(made):
-            try:
-                parent.rmdir()
-            except OSError:
-                pass
-        raise
-    finally:
-        shutil.rmtree(tmp_root, ignore_errors=True)
-    _register_namespace(dataset_id)
+    with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"],
+                           _TMP_PREFIX):
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id,
+            [_buffer(ep) for ep in kept],
+            env=env,
+            algorithm_name=f"scripted policy {record['policy']} ({record['generator']})",
+            author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
+            code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/",
+            description=(
+                f"{record['episodes']} successful scripted demonstrations in {record['env_id']} made by "
+                f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
+                f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
+                f"{record['seeding']}."
+            ),
+            requirements=_requirements(env),
+            jpeg_encoding=False,
+        )
+        dataset.storage.update_episode_metadata(
+            [{"attempt": ep.attempt, "env_seed": ep.env_seed, "steps": len(ep.actions), **ep.style}
+             for ep in kept]
+        )
+        dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
