@@ -7,12 +7,11 @@ records 2 episodes of the same seed with 2 workers, which must be the first 2 ep
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
 
 import minari
 import numpy as np
 import pytest
+from conftest import leftovers
 
 from rm_torchrl.cli.generate import add_arguments, run
 from rm_torchrl.data.minari import load_minari
@@ -31,25 +30,6 @@ def cli(*argv: str) -> int:
     args = parser.parse_args(list(argv))
     args.command = "generate"
     return run(args)
-
-
-def leftovers(cache: Path) -> list[str]:
-    """Everything in the cache, hidden temporary directories included."""
-    return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    path = tmp_path_factory.mktemp("minari")
-    previous = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = str(path)
-    try:
-        yield path
-    finally:
-        if previous is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
-            os.environ["MINARI_DATASETS_PATH"] = previous
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,11 @@ from rm_torchrl.errors import RMError
 def add_arguments(p) -> None:
     """The flags of ``rmrl generate`` (for ``cli/main.py``)."""
     from rm_torchrl.generate import GENERATORS
+    from rm_torchrl.generate.cloned import CLONED
 
-    p.add_argument("generator", choices=sorted(GENERATORS), help="what to demonstrate: " + "; ".join(
-        f"{name}: {g.description}" for name, g in sorted(GENERATORS.items())))
+    described = {**{n: g.description for n, g in GENERATORS.items()}, **{n: c.description for n, c in CLONED.items()}}
+    p.add_argument("generator", choices=sorted(described), help="what to generate: " + "; ".join(
+        f"{name}: {text}" for name, text in sorted(described.items())))
     p.add_argument("--out-name", required=True, metavar="NAME",
                    help="Minari dataset id to write, e.g. rmrl/relocate-human-v0 (namespace/name-v<N>)")
     p.add_argument("--episodes", type=int, default=25, help="successful episodes to keep (default 25)")
@@ -24,6 +26,12 @@ def add_arguments(p) -> None:
     p.add_argument("--noise", type=float, default=None,
                    help="std of the action noise on wrist and fingers (default: the generator's, 0.02)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset of that name")
+    p.add_argument("--steps", type=int, default=1_000_000,
+                   help="*-cloned: total transitions, half human demos (repeated), half BC rollouts (default 1,000,000)")
+    p.add_argument("--demos", default=None, metavar="SOURCE",
+                   help="*-cloned: the human demos, a D4RL .hdf5 or a local Minari id (default: "
+                        "../shared/data/d4rl/door-human-v0.hdf5 for door, rmrl/relocate-human-v0 for relocate)")
+    p.add_argument("--bc-steps", type=int, default=5000, help="*-cloned: BC gradient steps (default 5000)")
 
 
 def run(args) -> int:
@@ -34,6 +42,10 @@ def run(args) -> int:
 
     if args.noise is not None and args.noise < 0:
         raise RMError(f"--noise must be >= 0, got {args.noise}")
+    from rm_torchrl.generate.cloned import CLONED
+
+    if args.generator in CLONED:
+        return _run_cloned(args)
     policy_kwargs = {} if args.noise is None else {"noise": args.noise}
     bar = None
 
@@ -60,4 +72,38 @@ def run(args) -> int:
     print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
     if dataset.total_episodes >= 2:
         print(f"refine it with: rmrl refine --dataset {dataset_id} --events relocate --out ...")
+    return 0
+
+
+def _run_cloned(args) -> int:
+    import minari
+    from minari.storage import get_dataset_path
+
+    from rm_torchrl.generate import GENERATE_METADATA_KEY
+    from rm_torchrl.generate.cloned import generate_cloned
+
+    bars: dict = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in bars:
+            bars[stage] = tqdm(total=total, desc=f"{args.generator} {stage}", file=sys.stderr, leave=False)
+        bars[stage].total = total
+        bars[stage].update(done - bars[stage].n)
+
+    try:
+        dataset_id = generate_cloned(args.generator, args.out_name, steps=args.steps, seed=args.seed,
+                                     workers=args.workers, demos_source=args.demos, overwrite=args.overwrite,
+                                     progress=progress, noise=0.1 if args.noise is None else args.noise,
+                                     bc_steps=args.bc_steps)
+    finally:
+        for bar in bars.values():
+            bar.close()
+    dataset = minari.load_dataset(dataset_id)
+    mix = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {}).get("mix", {})
+    print(f"generated {args.generator}: {dataset.total_steps:,} transitions in {dataset.total_episodes:,} episodes "
+          f"({mix.get('demo_episodes', '?')} demo episodes, {mix.get('demo_transitions', '?')} transitions; "
+          f"{mix.get('rollout_episodes', '?')} BC rollouts, {mix.get('rollout_transitions', '?')} transitions)")
+    print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
+    events = args.generator.split("-")[0]
+    print(f"refine it with: rmrl refine --dataset {dataset_id} --events {events} --out ...")
     return 0
