@@ -1,4 +1,4 @@
-"""``rmrl``: refine datasets, draw reward machines and inspect events from the shell."""
+"""rmrl: refine offline RL datasets with event-ordered reward machines, train and evaluate on them, report."""
 from __future__ import annotations
 
 import argparse
