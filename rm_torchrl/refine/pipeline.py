@@ -1,6 +1,7 @@
 """The whole refinement as one ``Compose``, its report, and its use on replay buffers."""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -70,21 +71,11 @@ class RefineReport:
             alpha=float(shortest.alpha),
             episodes=label.stats["episodes"],
             episodes_reaching=label.stats["episodes_reaching"],
-            subtrajectories={"split": split.stats["subtrajectories"], "refined": _count_episodes(relabel)},
+            subtrajectories={"split": split.stats["subtrajectories"], "refined": relabel.stats["episodes"]},
         )
 
     def to_dict(self) -> dict:
-        return {
-            "stages": self.stages,
-            "order": self.order,
-            "order_score": self.order_score,
-            "groups": self.groups,
-            "events": self.events,
-            "alpha": self.alpha,
-            "episodes": self.episodes,
-            "episodes_reaching": self.episodes_reaching,
-            "subtrajectories": self.subtrajectories,
-        }
+        return dataclasses.asdict(self)
 
     def table(self) -> str:
         """The stage sizes as a plain-text table in the layout of the paper's Table 2."""
@@ -107,10 +98,6 @@ def _stages(pipeline: Compose):
     if missing:
         raise RMError(f"a report needs every refinement stage; the pipeline lacks {missing}")
     return [found[w] for w in wanted]
-
-
-def _count_episodes(relabel: CounterfactualRelabel) -> int:
-    return relabel.stats.get("episodes", 0)
 
 
 _ROW = "_refine_row"

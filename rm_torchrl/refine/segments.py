@@ -48,14 +48,6 @@ def position_in_run(starts: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
     return torch.arange(starts.numel(), device=starts.device) - first[run]
 
 
-def shift_down(x: torch.Tensor, fill) -> torch.Tensor:
-    """x[i-1] at row i (``fill`` at row 0)."""
-    out = torch.empty_like(x)
-    out[:1] = fill
-    out[1:] = x[:-1]
-    return out
-
-
 def rows_of_runs(first_rows: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
     """Row indices of the given runs, concatenated in order."""
     total = int(lengths.sum())
