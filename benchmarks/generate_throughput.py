@@ -8,10 +8,13 @@ stepping rate with uniform random actions (``env.step`` only, resets included), 
 * ``door-cloned rollouts``: the noisy BC policy (``rm_torchrl.generate.cloned.rollout``, 1 worker)
   for ``--door-episodes`` 200-step episodes, from a BC net trained for ``--bc-steps`` on
   door-human-v0 (training time reported separately, not counted in the rate);
+* ``kitchen-partial``: the scripted kitchen play controller (``collect``, 1 worker, every attempt
+  kept) over ``--kitchen-episodes`` episodes, against bare ``FrankaKitchen-v1`` stepping with the
+  generator's env kwargs;
 
 each with ``ratio_to_bare`` = generator rate / bare rate of its env. Run with OMP_NUM_THREADS=1.
 
-    python benchmarks/generate_throughput.py --relocate-episodes 5 --door-episodes 20
+    python benchmarks/generate_throughput.py --relocate-episodes 5 --door-episodes 20 --kitchen-episodes 5
 """
 from __future__ import annotations
 
@@ -27,10 +30,10 @@ import numpy as np
 warnings.filterwarnings("ignore")
 
 
-def bare_rate(env_id: str, steps: int, seed: int = 0) -> dict:
+def bare_rate(env_id: str, steps: int, seed: int = 0, env_kwargs: dict | None = None) -> dict:
     from rm_torchrl.generate.record import make_env
 
-    env = make_env(env_id, 200)
+    env = make_env(env_id, 200, env_kwargs)
     rng = np.random.default_rng(seed)
     env.action_space.seed(seed)
     env.reset(seed=seed)
@@ -51,6 +54,7 @@ def main(argv=None) -> int:
     p.add_argument("--bare-steps", type=int, default=5000)
     p.add_argument("--relocate-episodes", type=int, default=5)
     p.add_argument("--door-episodes", type=int, default=20)
+    p.add_argument("--kitchen-episodes", type=int, default=5)
     p.add_argument("--bc-steps", type=int, default=1000)
     p.add_argument("--door-demos", default=None)
     p.add_argument("--seed", type=int, default=0)
@@ -62,6 +66,8 @@ def main(argv=None) -> int:
     out: dict = {"threads": os.environ.get("OMP_NUM_THREADS"), "python": platform.python_version()}
     bare = {env_id: bare_rate(env_id, args.bare_steps, args.seed)
             for env_id in ("AdroitHandRelocate-v1", "AdroitHandDoor-v1")}
+    kitchen = GENERATORS["kitchen-partial"]
+    bare[kitchen.env_id] = bare_rate(kitchen.env_id, args.bare_steps, args.seed, kitchen.env_kwargs)
     out["bare_random"] = bare
 
     t0 = time.perf_counter()
@@ -91,6 +97,14 @@ def main(argv=None) -> int:
                                    "bc_train": {"steps": args.bc_steps, "seconds": round(bc_seconds, 3),
                                                 "steps_per_s": args.bc_steps / bc_seconds},
                                    "note": "includes env creation (once) and resets"}
+    t0 = time.perf_counter()
+    kept, attempts = collect(kitchen, args.kitchen_episodes, seed=args.seed)
+    seconds = time.perf_counter() - t0
+    n = int(sum(len(ep.actions) for ep in kept))
+    rate = n / seconds
+    out["kitchen-partial"] = {"episodes": len(kept), "attempts": attempts, "steps": n, "seconds": round(seconds, 3),
+                              "steps_per_s": rate, "ratio_to_bare": rate / bare[kitchen.env_id]["steps_per_s"],
+                              "note": "every attempt is kept; includes env creation (once) and resets"}
     print(json.dumps(out, indent=2))
     return 0
 

@@ -18,13 +18,17 @@ def add_arguments(p) -> None:
         f"{name}: {text}" for name, text in sorted(described.items())))
     p.add_argument("--out-name", required=True, metavar="NAME",
                    help="Minari dataset id to write, e.g. rmrl/relocate-human-v0 (namespace/name-v<N>)")
-    p.add_argument("--episodes", type=int, default=25, help="successful episodes to keep (default 25)")
+    p.add_argument("--episodes", type=int, default=25,
+                   help="episodes to keep (default 25): successful ones for relocate, every attempt for kitchen "
+                        "play (kitchen-mixed drops the rare episode that completes all four goal tasks)")
     p.add_argument("--seed", type=int, default=0, help="the dataset is a function of the seed (default 0)")
     p.add_argument("--workers", type=int, default=1,
                    help="processes simulating in parallel; the dataset does not depend on it (default 1)")
-    p.add_argument("--max-steps", type=int, default=400, help="episode step limit (default 400)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="episode step limit (default: the generator's, 400 for relocate, 800 for kitchen)")
     p.add_argument("--noise", type=float, default=None,
-                   help="std of the action noise on wrist and fingers (default: the generator's, 0.02)")
+                   help="std of the action noise (default: the generator's, 0.02 on relocate's wrist and fingers, "
+                        "0.1 on every kitchen action)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset of that name")
     p.add_argument("--steps", type=int, default=1_000_000,
                    help="*-cloned: total transitions, half human demos (repeated), half BC rollouts (default 1,000,000)")
@@ -66,12 +70,14 @@ def run(args) -> int:
     dataset = minari.load_dataset(dataset_id)
     record = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {})
     length = record.get("episode_length", {})
-    print(f"generated {dataset.total_episodes:,} successful episodes ({dataset.total_steps:,} transitions) of "
+    print(f"generated {dataset.total_episodes:,} episodes ({record.get('keep', 'kept')}; "
+          f"{dataset.total_steps:,} transitions) of "
           f"{args.generator} in {record.get('attempts', '?')} attempts; episode length mean "
           f"{length.get('mean', float('nan')):.1f}, min {length.get('min', '?')}, max {length.get('max', '?')}")
     print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
-    if dataset.total_episodes >= 2:
-        print(f"refine it with: rmrl refine --dataset {dataset_id} --events relocate --out ...")
+    events = GENERATORS[args.generator].events
+    if dataset.total_episodes >= 2 and events:
+        print(f"refine it with: rmrl refine --dataset {dataset_id} --events {events} --out ...")
     return 0
 
 

@@ -6,6 +6,8 @@ scripted policy. ``generate_dataset`` records one atomically (see ``record``).
 from __future__ import annotations
 
 from rm_torchrl.generate.record import GENERATE_METADATA_KEY, Generator, collect, generate_dataset
+from rm_torchrl.generate.kitchen import ENV_KWARGS as KITCHEN_ENV_KWARGS
+from rm_torchrl.generate.kitchen import KitchenPlayController, keep_all, keep_without_all_goals
 from rm_torchrl.generate.relocate import RelocateController
 
 GENERATORS = {
@@ -15,7 +17,34 @@ GENERATORS = {
         policy=RelocateController,
         description="Adroit relocate: grasp the ball, carry it to the target and hold it (scripted, human-like "
                     "variety of speed and style)",
+        events="relocate",
+    ),
+    "kitchen-partial": Generator(
+        name="kitchen-partial",
+        env_id="FrankaKitchen-v1",
+        policy=KitchenPlayController,
+        description="Franka kitchen play like D4RL kitchen-partial: scripted skills in sampled orders; about a third "
+                    "of the episodes do all four goal tasks (microwave, kettle, light switch, slide cabinet), all "
+                    "episodes are kept",
+        env_kwargs=KITCHEN_ENV_KWARGS,
+        policy_kwargs={"mix": "partial"},
+        keep=keep_all,
+        events="kitchen",
+        max_steps=800,
+    ),
+    "kitchen-mixed": Generator(
+        name="kitchen-mixed",
+        env_id="FrankaKitchen-v1",
+        policy=KitchenPlayController,
+        description="Franka kitchen play like D4RL kitchen-mixed: subsets of the tasks, no episode completes all four "
+                    "goal tasks",
+        env_kwargs=KITCHEN_ENV_KWARGS,
+        policy_kwargs={"mix": "mixed"},
+        keep=keep_without_all_goals,
+        events="kitchen",
+        max_steps=800,
     ),
 }
 
-__all__ = ["GENERATORS", "GENERATE_METADATA_KEY", "Generator", "RelocateController", "collect", "generate_dataset"]
+__all__ = ["GENERATORS", "GENERATE_METADATA_KEY", "Generator", "KitchenPlayController", "RelocateController", "collect",
+           "generate_dataset"]

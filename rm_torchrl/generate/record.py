@@ -1,17 +1,18 @@
-"""Record a scripted policy's successful episodes as a local Minari dataset, atomically, on 1 or more cores.
+"""Record a scripted policy's episodes as a local Minari dataset, atomically, on 1 or more cores.
 
 Episode attempts are numbered 0, 1, 2, ...; attempt ``k`` resets the environment with a seed and
 gives the policy a ``numpy`` generator, both derived from ``(seed, k)`` only. The dataset holds the
-first ``episodes`` successful attempts in attempt order, so it depends on the seed alone: the same
+first ``episodes`` kept attempts in attempt order, so it depends on the seed alone: the same
 seed gives the same dataset, with any number of workers (workers run attempts in parallel, the
-parent writes them in order).
+parent writes them in order). Which attempts are kept is the generator's choice: by default the
+successful ones (``info["success"]`` on the last step); play data such as kitchen keeps all of them.
 
 The policy protocol (see ``rm_torchrl.generate.relocate.RelocateController``): ``reset(env, rng)``
 before each episode, ``act(env) -> action`` each step, optionally ``finished(env) -> bool`` (end the
 episode early, e.g. after holding the goal), ``style`` (a dict of the episode's drawn parameters,
 stored as episode metadata) and ``settings() -> dict`` (stored in the dataset metadata). An episode
 ends when the policy is finished, the environment terminates, or after ``max_steps`` steps
-(truncated); it is kept when ``info["success"]`` holds on its last step.
+(truncated). Observations may be (nested) dicts, as in FrankaKitchen; they are stacked per key.
 
 The dataset is built by ``minari.create_dataset_from_buffers`` in a hidden temporary cache next to
 the real one (``<cache>/.rmrl-generate-*``) and renamed into place only once it is complete and
@@ -20,6 +21,7 @@ an interruption leaves no dataset behind, and with ``overwrite`` the previous on
 """
 from __future__ import annotations
 
+import inspect
 import warnings
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -43,13 +45,41 @@ _TMP_PREFIX = ".rmrl-generate-"
 
 @dataclass(frozen=True)
 class Generator:
-    """A named recipe for demonstrations: an environment and a (picklable) factory of scripted policies."""
+    """A named recipe for demonstrations: an environment and a (picklable) factory of scripted policies.
+
+    ``policy_kwargs`` are the factory's defaults for this generator (the caller's override them);
+    ``keep`` (a picklable function of an ``Episode``) decides which attempts go into the dataset, by
+    default the successful ones; ``events`` names the event spec to refine the dataset with.
+    """
 
     name: str
     env_id: str
     policy: Callable[..., Any]
     description: str = ""
     env_kwargs: dict = field(default_factory=dict)
+    policy_kwargs: dict = field(default_factory=dict)
+    keep: Callable[["Episode"], bool] | None = None
+    events: str = ""
+    max_steps: int = 400
+
+    def kept(self, episode: "Episode") -> bool:
+        """Whether ``episode`` goes into the dataset."""
+        return episode.success if self.keep is None else bool(self.keep(episode))
+
+    def keep_rule(self) -> str:
+        """The keep rule, for the metadata and messages."""
+        return "successful attempts" if self.keep is None else f"attempts passing {self.keep.__name__}"
+
+    def make_policy(self, policy_kwargs: dict | None = None):
+        """The policy, with unknown options rejected by name rather than by a TypeError deep in a worker."""
+        kwargs = {**self.policy_kwargs, **(policy_kwargs or {})}
+        known = inspect.signature(self.policy).parameters
+        if not any(p.kind is p.VAR_KEYWORD for p in known.values()):
+            unknown = sorted(set(kwargs) - set(known))
+            if unknown:
+                raise RMError(f"unknown option(s) {', '.join(map(repr, unknown))} for generator {self.name!r}; "
+                              f"known: {', '.join(sorted(known)) or 'none'}")
+        return self.policy(**kwargs)
 
 
 @dataclass
@@ -90,6 +120,13 @@ def make_env(env_id: str, max_steps: int, env_kwargs: dict | None = None):
             raise RMError(f"cannot make environment {env_id!r}: {type(err).__name__}: {err}") from None
 
 
+def stack(items: list):
+    """Stack a list of observations into one array, or a (nested) dict of arrays for dict observations."""
+    if isinstance(items[0], dict):
+        return {key: stack([item[key] for item in items]) for key in items[0]}
+    return np.asarray(items)
+
+
 def run_episode(env, policy, seed: int, attempt: int) -> Episode:
     """Run one attempt of ``policy`` in ``env`` (whose TimeLimit bounds its length)."""
     env_seed, policy_seed = attempt_seeds(seed, attempt)
@@ -108,7 +145,7 @@ def run_episode(env, policy, seed: int, attempt: int) -> Episode:
         if finished is not None and finished(env):
             break
     style = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in dict(getattr(policy, "style", {})).items()}
-    return Episode(attempt, env_seed, bool(info.get("success", False)), np.asarray(observations),
+    return Episode(attempt, env_seed, bool(info.get("success", False)), stack(observations),
                    np.asarray(actions, dtype=np.float32), np.asarray(rewards, dtype=np.float64),
                    bool(terminated), style)
 
@@ -123,19 +160,21 @@ def _worker_attempt(generator: Generator, policy_kwargs: dict, max_steps: int, s
         if "env" in _WORKER:
             _WORKER["env"].close()
         _WORKER.update(key=key, env=make_env(generator.env_id, max_steps, generator.env_kwargs),
-                       policy=generator.policy(**policy_kwargs))
+                       policy=generator.make_policy(policy_kwargs))
     return run_episode(_WORKER["env"], _WORKER["policy"], seed, attempt)
 
 
-def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1, max_steps: int = 400,
+def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1, max_steps: int | None = None,
             policy_kwargs: dict | None = None, max_attempts: int | None = None,
             progress: Callable[[int, int, int], None] | None = None) -> tuple[list[Episode], int]:
-    """The first ``episodes`` successful attempts, in attempt order, and the number of attempts made.
+    """The first ``episodes`` kept attempts (see ``Generator.kept``), in attempt order, and the number of attempts made.
 
     ``progress(kept, episodes, attempts)`` is called after every attempt. Raises RMError when
-    ``max_attempts`` (default ``4 * episodes + 20``) attempts do not give enough successes.
+    ``max_attempts`` (default ``4 * episodes + 20``) attempts do not give enough kept episodes.
     """
+    max_steps = generator.max_steps if max_steps is None else max_steps
     policy_kwargs = dict(policy_kwargs or {})
+    policy = generator.make_policy(policy_kwargs)  # bad options fail here, before any simulation
     max_attempts = int(max_attempts if max_attempts is not None else 4 * episodes + 20)
     kept: list[Episode] = []
     attempts = 0
@@ -143,7 +182,7 @@ def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1
     def take(episode: Episode) -> None:
         nonlocal attempts
         attempts += 1
-        if episode.success and len(kept) < episodes:
+        if len(kept) < episodes and generator.kept(episode):
             kept.append(episode)
         if progress is not None:
             progress(len(kept), episodes, attempts)
@@ -151,7 +190,6 @@ def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1
     if workers <= 1:
         env = make_env(generator.env_id, max_steps, generator.env_kwargs)
         try:
-            policy = generator.policy(**policy_kwargs)
             while len(kept) < episodes and attempts < max_attempts:
                 take(run_episode(env, policy, seed, attempts))
         finally:
@@ -171,23 +209,25 @@ def collect(generator: Generator, episodes: int, seed: int = 0, workers: int = 1
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
     if len(kept) < episodes:
-        raise RMError(f"only {len(kept)} of {attempts} attempts of {generator.name} succeeded, {episodes} needed; "
+        outcome = "succeeded" if generator.keep is None else f"were kept ({generator.keep_rule()})"
+        raise RMError(f"only {len(kept)} of {attempts} attempts of {generator.name} {outcome}, {episodes} needed; "
                       "nothing was written (raise --max-steps or lower --episodes)")
     return kept, attempts
 
 
 def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: int = 0, workers: int = 1,
-                     max_steps: int = 400, overwrite: bool = False, policy_kwargs: dict | None = None,
+                     max_steps: int | None = None, overwrite: bool = False, policy_kwargs: dict | None = None,
                      max_attempts: int | None = None,
                      progress: Callable[[int, int, int], None] | None = None) -> str:
-    """Record ``episodes`` successful episodes of ``generator`` as the local Minari dataset ``name``; return its id.
+    """Record ``episodes`` kept episodes of ``generator`` as the local Minari dataset ``name``; return its id.
 
     See the module docstring for seeding, episode ends and atomicity; ``workers`` processes run
-    attempts in parallel (the dataset does not depend on it).
+    attempts in parallel (the dataset does not depend on it); ``max_steps`` defaults to the generator's.
     """
     from rm_torchrl.data.d4rl_to_minari import _cache_root, _check_target, _versions, check_dataset_name
 
     dataset_id = check_dataset_name(name)
+    max_steps = generator.max_steps if max_steps is None else max_steps
     if int(episodes) < 1:
         raise RMError(f"--episodes must be at least 1, got {episodes}")
     if int(workers) < 1:
@@ -200,8 +240,8 @@ def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: 
 
     kept, attempts = collect(generator, int(episodes), int(seed), int(workers), int(max_steps), policy_kwargs,
                              max_attempts, progress)
-    policy = generator.policy(**(policy_kwargs or {}))
-    settings = policy.settings() if hasattr(policy, "settings") else dict(policy_kwargs or {})
+    policy = generator.make_policy(policy_kwargs)
+    settings = policy.settings() if hasattr(policy, "settings") else {**generator.policy_kwargs, **(policy_kwargs or {})}
     lengths = [len(ep.actions) for ep in kept]
     versions = _versions()
     record = {
@@ -213,12 +253,14 @@ def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: 
         "episodes": len(kept),
         "transitions": int(sum(lengths)),
         "attempts": attempts,
-        "success_rate": len(kept) / attempts,
+        "keep": generator.keep_rule(),
+        # a success rate only where success is the keep rule (kitchen play keeps failures too)
+        ("success_rate" if generator.keep is None else "kept_rate"): len(kept) / attempts,
         "max_steps": int(max_steps),
         "episode_length": {"mean": float(np.mean(lengths)), "min": int(min(lengths)), "max": int(max(lengths))},
         "policy_settings": settings,
         "seeding": "attempt k resets the env with SeedSequence([seed, k, 0]) and seeds the policy with "
-                   "SeedSequence([seed, k, 1]); the first `episodes` successful attempts are kept, in order",
+                   f"SeedSequence([seed, k, 1]); the first `episodes` {generator.keep_rule()} are kept, in order",
         "versions": versions,
         "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
@@ -258,7 +300,7 @@ def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: lis
             author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
             code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/",
             description=(
-                f"{record['episodes']} successful scripted demonstrations in {record['env_id']} made by "
+                f"{record['episodes']} scripted episodes ({record['keep']}) in {record['env_id']} made by "
                 f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
                 f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
                 f"{record['seeding']}."

@@ -1,0 +1,124 @@
+"""``rmrl generate kitchen-partial|kitchen-mixed``: scripted Franka kitchen play -> local Minari dataset.
+
+Every test points ``MINARI_DATASETS_PATH`` at a temporary directory. One small dataset of each mix
+(1 worker) is recorded once per module and shared; what the episodes completed is checked from the
+recorded achieved goals, not from the controller's plan.
+"""
+from __future__ import annotations
+
+import argparse
+
+import minari
+import numpy as np
+import pytest
+
+from rm_torchrl.cli.generate import add_arguments, run
+from rm_torchrl.data.minari import load_minari
+from rm_torchrl.errors import RMError
+from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
+from rm_torchrl.generate.kitchen import GOAL_TASKS, TASKS, THRESHOLD, KitchenPlayController
+from rm_torchrl.refine import refine
+
+PARTIAL, MIXED = "rmrl/kitchen-partial-test-v0", "rmrl/kitchen-mixed-test-v0"
+SEED = 0  # attempt 1 of seed 0 plays all four goal tasks and completes them
+MAX_STEPS = 800
+
+
+def cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser(prog="rmrl generate")
+    add_arguments(parser)
+    args = parser.parse_args(list(argv))
+    args.command = "generate"
+    return run(args)
+
+
+@pytest.fixture(scope="module")
+def partial(cache):
+    assert cli("kitchen-partial", "--out-name", PARTIAL, "--episodes", "3", "--seed", str(SEED)) == 0
+    return minari.load_dataset(PARTIAL)
+
+
+@pytest.fixture(scope="module")
+def mixed(cache):
+    assert cli("kitchen-mixed", "--out-name", MIXED, "--episodes", "3", "--seed", str(SEED),
+               "--max-steps", str(MAX_STEPS)) == 0
+    return minari.load_dataset(MIXED)
+
+
+def done_tasks(episode) -> set[str]:
+    """Tasks whose recorded achieved goal came within THRESHOLD of the desired goal at some step."""
+    ach, des = episode.observations["achieved_goal"], episode.observations["desired_goal"]
+    return {t for t in TASKS if (np.linalg.norm(ach[t] - des[t], axis=-1) < THRESHOLD).any()}
+
+
+def test_partial_has_an_episode_with_all_four_goal_tasks(partial):
+    done = [done_tasks(ep) for ep in partial.iterate_episodes()]
+    assert any(set(GOAL_TASKS) <= d for d in done)
+    metadata = list(partial.storage.get_episode_metadata(range(partial.total_episodes)))
+    assert [sorted(m["completed"]) for m in metadata] == [sorted(d) for d in done]
+
+
+def test_mixed_never_completes_all_four_goal_tasks(mixed):
+    done = [done_tasks(ep) for ep in mixed.iterate_episodes()]
+    assert len(done) == 3 and all(d for d in done)
+    assert not any(set(GOAL_TASKS) <= d for d in done)
+
+
+def test_observations_have_the_d4rl_v2_layout(partial):
+    for ep in partial.iterate_episodes():
+        obs, n = ep.observations, len(ep.actions)
+        assert set(obs) == {"observation", "achieved_goal", "desired_goal"}
+        assert obs["observation"].shape == (n + 1, 59)
+        for key in ("achieved_goal", "desired_goal"):  # every task at every step, done or not
+            assert set(obs[key]) == set(TASKS)
+            assert obs[key]["kettle"].shape == (n + 1, 7) and obs[key]["microwave"].shape == (n + 1, 1)
+        assert np.allclose(obs["desired_goal"]["hinge cabinet"], [0.0, 1.45])
+        assert ep.actions.shape == (n, 9) and np.abs(ep.actions).max() <= 1.0
+        assert n <= MAX_STEPS and not ep.terminations.any()
+
+
+def test_metadata(partial, mixed):
+    for ds, name in ((partial, "kitchen-partial"), (mixed, "kitchen-mixed")):
+        record = ds.storage.metadata[GENERATE_METADATA_KEY]
+        assert record["generator"] == name and record["seed"] == SEED and record["max_steps"] == MAX_STEPS
+        assert record["policy_settings"]["noise"] == 0.1 and record["policy_settings"]["mix"] == name.split("-")[1]
+        assert record["versions"]["gymnasium-robotics"] and record["versions"]["mujoco"]
+        assert record["env_kwargs"]["remove_task_when_completed"] is False
+        assert record["env_kwargs"]["terminate_on_tasks_completed"] is False
+        assert len(record["env_kwargs"]["tasks_to_complete"]) == 7
+        assert ds.env_spec.id == "FrankaKitchen-v1"
+    assert partial.storage.metadata[GENERATE_METADATA_KEY]["attempts"] == 3  # play data: nothing filtered
+    styles = list(partial.storage.get_episode_metadata(range(3)))
+    assert all(len(s["plan"]) >= 1 and 0 < s["noise"] < 0.2 for s in styles)
+
+
+def test_refine_with_the_kitchen_events(partial):
+    refined, report = refine(load_minari(PARTIAL), "kitchen", alpha=1.0)
+    assert report.groups and all(n > 0 for n in report.groups.values())
+    assert sorted(report.order) == sorted(GOAL_TASKS)
+    assert refined.batch_size[0] > 0
+
+
+def test_same_seed_gives_the_same_episodes_with_two_workers(partial, cache):
+    name = "rmrl/kitchen-workers-v0"
+    generate_dataset(GENERATORS["kitchen-partial"], name, episodes=2, seed=SEED, workers=2, max_steps=MAX_STEPS)
+    two = list(minari.load_dataset(name).iterate_episodes())
+    one = list(partial.iterate_episodes())
+    for a, b in zip(two, one):
+        assert np.array_equal(a.actions, b.actions)
+        assert np.array_equal(a.observations["observation"], b.observations["observation"])
+
+
+@pytest.mark.parametrize("kwargs,match", [({"bogus": 1}, "unknown option.*'bogus'"),
+                                          ({"mix": "all"}, "unknown kitchen mix 'all'"),
+                                          ({"all_goals": 2.0}, "all_goals must be in"),
+                                          ({"noise": -0.1}, "noise must be >= 0")])
+def test_bad_options(cache, kwargs, match):
+    with pytest.raises(RMError, match=match):
+        generate_dataset(GENERATORS["kitchen-mixed"], "rmrl/kitchen-bad-v0", episodes=1, policy_kwargs=kwargs)
+
+
+def test_mixed_plans_always_omit_a_goal_task():
+    controller = KitchenPlayController(mix="mixed")
+    rng = np.random.default_rng(0)
+    assert all(not set(GOAL_TASKS) <= set(controller.plan(rng)) for _ in range(200))
