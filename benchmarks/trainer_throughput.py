@@ -131,6 +131,7 @@ def main() -> None:
         "batch_size": BATCH, "hidden": HIDDEN, "observation_dim": OBS, "action_dim": ACT,
         "updates_per_second": {"plain_torchrl_iql": round(max(baseline), 1), "rm_torchrl_trainer": round(max(mine), 1)},
         "ratio_trainer_over_plain": round(max(mine) / max(baseline), 2),
+        "ratio_per_round": [round(m / b, 2) for m, b in zip(mine, baseline)],
         "target_ratio_min": 1.8,
         "memory_1M_transitions": {**memory, "dataset_mib": round(data_mib),
                                   "peak_rss_over_dataset": round(memory["peak_rss_mib"] / data_mib, 2)},

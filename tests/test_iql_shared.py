@@ -4,9 +4,12 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.objectives import IQLLoss
+from torch import nn
+from torchrl.modules import ValueOperator
+from torchrl.objectives import IQLLoss, SoftUpdate, ValueEstimators
 
 from rm_torchrl.train.iql import SharedForwardIQLLoss
+from rm_torchrl.train.losses import ForeachSoftUpdate
 from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 
 OBS, ENC, ACT = 7, 3, 2
@@ -23,18 +26,40 @@ def batch(n=64, seed=0):
     }, batch_size=[n])
 
 
-def build(cls, seed):
+class PlainValue(nn.Module):
+    """A critic that is not a ``ConcatMLP``: the loss must take its generic TensorDict-module path."""
+
+    def __init__(self, in_features):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(in_features, 16), nn.Tanh(), nn.Linear(16, 1))
+
+    def forward(self, *inputs):
+        return self.net(torch.cat(inputs, -1))
+
+
+def build(cls, seed, generic=False):
     torch.manual_seed(seed)
     keys = ["observation", "rm_encoding"]
-    loss = cls(make_actor(keys, OBS + ENC, ACT, [16, 16]), make_qvalue(keys, OBS + ENC, ACT, [16, 16]),
-               make_value(keys, OBS + ENC, [16, 16]), loss_function="l2", temperature=0.5, expectile=0.7)
+    if generic:
+        qvalue = ValueOperator(PlainValue(OBS + ENC + ACT), in_keys=[*keys, "action"])
+        value = ValueOperator(PlainValue(OBS + ENC), in_keys=keys)
+    else:
+        qvalue, value = make_qvalue(keys, OBS + ENC, ACT, [16, 16]), make_value(keys, OBS + ENC, [16, 16])
+    loss = cls(make_actor(keys, OBS + ENC, ACT, [16, 16]), qvalue, value, loss_function="l2", temperature=0.5,
+               expectile=0.7)
     loss.make_value_estimator(gamma=0.99)
     return loss
 
 
+def test_fast_path_only_for_known_networks():
+    assert build(SharedForwardIQLLoss, 0)._fast
+    assert not build(SharedForwardIQLLoss, 0, generic=True)._fast
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["fast", "generic"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_same_losses_and_gradients(seed):
-    ref, fast = build(IQLLoss, seed), build(SharedForwardIQLLoss, seed)
+def test_same_losses_and_gradients(seed, generic):
+    ref, fast = build(IQLLoss, seed, generic), build(SharedForwardIQLLoss, seed, generic)
     fast.load_state_dict(ref.state_dict())
     with torch.no_grad():  # move the targets away from the online networks
         for p in list(ref.target_qvalue_network_params.values(True, True)):
@@ -52,3 +77,32 @@ def test_same_losses_and_gradients(seed):
             assert q.grad is None, k
         else:
             torch.testing.assert_close(p.grad, q.grad, msg=k)
+
+
+def test_td_estimator_other_than_td0_falls_back_to_iqlloss():
+    ref, fast = build(IQLLoss, 0), build(SharedForwardIQLLoss, 0)
+    fast.load_state_dict(ref.state_dict())
+    for loss in (ref, fast):
+        loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.99, lmbda=0.9)
+    data = batch(seed=4)
+    data["next", "done"] = data["next", "terminated"].clone()
+    assert not fast._plain_td0(data)
+    torch.testing.assert_close(ref(data.clone())["loss_qvalue"], fast(data.clone())["loss_qvalue"])
+
+
+def test_foreach_soft_update_matches_soft_update():
+    ref, fast = build(IQLLoss, 0), build(IQLLoss, 0)
+    fast.load_state_dict(ref.state_dict())
+    updaters = SoftUpdate(ref, tau=0.05), ForeachSoftUpdate(fast, tau=0.05)
+    before = fast.target_qvalue_network_params.clone()
+    for step in range(3):
+        with torch.no_grad():  # move the online critics, as an optimiser step would
+            for loss in (ref, fast):
+                for p in loss.qvalue_network_params.values(True, True):
+                    p.add_(0.1 * (step + 1))
+        for u in updaters:
+            u.step()
+        for (k, a), (_, b) in zip(ref.state_dict().items(), fast.state_dict().items()):
+            torch.testing.assert_close(a, b, msg=k)
+    moved = (fast.target_qvalue_network_params - before).abs().flatten_keys()
+    assert max(t.max() for t in moved.values()) > 0.01  # the targets did move

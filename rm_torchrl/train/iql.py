@@ -1,42 +1,123 @@
-"""TorchRL's ``IQLLoss`` with the forward passes its three losses share computed once."""
+"""TorchRL's ``IQLLoss`` with the forward passes its three losses share computed once, and cheaply."""
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import NormalParamExtractor
+from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import IQLLoss
+from torchrl.objectives.utils import distance_loss
+from torchrl.objectives.value import TD0Estimator
+
+from rm_torchrl.train.networks import ConcatMLP, _Splat
 
 
 class SharedForwardIQLLoss(IQLLoss):
-    """Same losses as ``IQLLoss`` (eqs. 2-4), one pass fewer of the twin target critics and of V.
+    """Same losses and gradients as ``IQLLoss`` (eqs. 2-4), with fewer and cheaper forward passes.
 
-    ``IQLLoss.forward`` evaluates the target twin-Q on (s, a) in both the actor and the value
-    losses, and V(s) in both as well (once without gradient). Here they are evaluated once: the
-    value loss takes the gradient of V, the actor loss its detached value. The Q loss is
-    ``IQLLoss.qvalue_loss`` unchanged.
+    - ``IQLLoss.forward`` evaluates the target twin-Q on (s, a) in both the actor and the value
+      losses, and V(s) in both (once without gradient). Here each is evaluated once: the value
+      loss takes the gradient of V, the actor loss its detached value.
+    - The Q loss regresses the twin Q(s, a) on r + gamma (1 - terminated) V(s'), the TD(0) target
+      of ``IQLLoss.qvalue_loss``, with V(s') computed directly rather than through the value
+      estimator's generic machinery. Other value estimators use ``IQLLoss.qvalue_loss`` unchanged.
+    - For the networks of ``rm_torchrl.train.networks`` (``ConcatMLP`` critics and actor), each
+      network is called with its parameters from the loss's parameter TensorDicts
+      (``ConcatMLP.call_with``): the twin critics as one batched matmul per layer. On a CPU,
+      the module dispatch, parameter swapping and ``vmap`` this avoids cost as much as the
+      matmuls themselves. Other networks take the generic TensorDict-module path.
     """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._fast = _direct_mlp(self.value_network) is not None and _direct_mlp(self.qvalue_network) is not None \
+            and _direct_actor(self.actor_network) is not None
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         with torch.no_grad():
-            td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
-            td_q = self._vmap_qvalue_networkN0(td_q, self.target_qvalue_network_params)
-            min_q = td_q.get(keys.state_action_value).min(0)[0].squeeze(-1)
-        td_v = tensordict.select(*self.value_network.in_keys, strict=False)
-        with self.value_network_params.to_module(self.value_network, preserve_module_state=False):
-            self.value_network(td_v)
-        value = td_v.get(keys.value).squeeze(-1)
+            min_q = self._q(tensordict, self.target_qvalue_network_params).min(0)[0]
+        value = self._v(tensordict, self.value_network_params)
         loss_value = self._reduce_loss(self.loss_value_diff(min_q - value, self.expectile), tensordict=tensordict)
 
-        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
-            dist = self.actor_network.get_dist(tensordict)
-        log_prob = dist.log_prob(tensordict.get(keys.action))
+        log_prob = self._log_prob(tensordict)
         weight = torch.exp((min_q - value.detach()) * self.temperature).clamp_max(100)
         loss_actor = self._reduce_loss(-(weight * log_prob), tensordict=tensordict)
 
-        loss_qvalue, _ = self.qvalue_loss(tensordict)
+        if self._plain_td0(tensordict):
+            loss_qvalue = self._td0_qvalue_loss(tensordict)
+        else:
+            loss_qvalue, _ = self.qvalue_loss(tensordict)
         return TensorDict({
             "loss_actor": loss_actor,
             "loss_qvalue": loss_qvalue,
             "loss_value": loss_value,
             "entropy": -log_prob.detach().mean(),
         })
+
+    def _q(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
+        """The twin Q(s, a), shape [2, batch]."""
+        if self._fast:
+            inputs = [tensordict.get(k) for k in self.qvalue_network.in_keys]
+            return self.qvalue_network.module.call_with(params.get("module"), *inputs).squeeze(-1)
+        td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        return self._vmap_qvalue_networkN0(td_q, params).get(self.tensor_keys.state_action_value).squeeze(-1)
+
+    def _v(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
+        """V of the observation keys of ``tensordict``, shape [batch]."""
+        if self._fast:
+            inputs = [tensordict.get(k) for k in self.value_network.in_keys]
+            return self.value_network.module.call_with(params.get("module"), *inputs).squeeze(-1)
+        td_v = tensordict.select(*self.value_network.in_keys, strict=False)
+        with params.to_module(self.value_network, preserve_module_state=False):
+            self.value_network(td_v)
+        return td_v.get(self.tensor_keys.value).squeeze(-1)
+
+    def _log_prob(self, tensordict: TensorDictBase) -> torch.Tensor:
+        action = tensordict.get(self.tensor_keys.action)
+        if self._fast:
+            td_module, dist_module = self.actor_network.module
+            splat = td_module.module
+            params = self.actor_network_params.get(("module", "0", "module", "seq", "0"))
+            out = splat.seq[0].call_with(params, *[tensordict.get(k) for k in td_module.in_keys])
+            loc, scale = splat.seq[1](out)
+            return dist_module.distribution_class(loc, scale, **dist_module.distribution_kwargs).log_prob(action)
+        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
+            dist = self.actor_network.get_dist(tensordict)
+        return dist.log_prob(action)
+
+    def _plain_td0(self, tensordict: TensorDictBase) -> bool:
+        est = self._value_estimator
+        return (type(est) is TD0Estimator and not est.average_rewards and not est.shifted
+                and est.tensor_keys.steps_to_next_obs not in tensordict.keys(True))
+
+    def _td0_qvalue_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
+        est = self._value_estimator
+        nxt = tensordict.get("next")
+        with torch.no_grad():
+            next_value = self._v(nxt, self.target_value_network_params)
+            reward = nxt.get(est.tensor_keys.reward).squeeze(-1)
+            terminated = nxt.get(est.tensor_keys.terminated, default=nxt.get(est.tensor_keys.done)).squeeze(-1)
+            target = reward + est.gamma * (~terminated).int() * next_value
+        pred = self._q(tensordict, self.qvalue_network_params)
+        loss = distance_loss(pred, target.expand_as(pred), loss_function=self.loss_function).sum(0)
+        return self._reduce_loss(loss, tensordict=tensordict)
+
+
+def _direct_mlp(network) -> ConcatMLP | None:
+    """The ``ConcatMLP`` a value/Q operator wraps, when its output is that MLP's output."""
+    if type(network) is ValueOperator and isinstance(network.module, ConcatMLP):
+        return network.module
+    return None
+
+
+def _direct_actor(actor) -> ConcatMLP | None:
+    """The ``ConcatMLP`` of an ``rm_torchrl.train.networks.make_actor`` policy."""
+    if type(actor) is not ProbabilisticActor or len(actor.module) != 2:
+        return None
+    splat = getattr(actor.module[0], "module", None)
+    if not isinstance(splat, _Splat) or len(splat.seq) != 2:
+        return None
+    if isinstance(splat.seq[0], ConcatMLP) and isinstance(splat.seq[1], NormalParamExtractor):
+        return splat.seq[0]
+    return None

@@ -40,17 +40,37 @@ class Method:
     target_updater: SoftUpdate | None
 
 
-def _adam(params, lr: float, weight_decay: float, recipe: Recipe) -> torch.optim.Optimizer:
-    """Eq. 7-8: an L2 penalty lambda*||w||^2 has gradient 2*lambda*w, Adam's coupled weight_decay."""
-    params = [p for p in params if p.requires_grad]
-    fused = recipe.optim.fused
-    if recipe.optim.decay == "decoupled":
-        return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, fused=fused)
-    return torch.optim.Adam(params, lr=lr, weight_decay=2 * weight_decay, fused=fused)
+def _adam(groups: list[tuple[object, float, float]], recipe: Recipe) -> torch.optim.Optimizer:
+    """One (fused) Adam over ``(parameters, lr, lambda)`` groups: one optimizer step per update, not one per network.
+
+    Eq. 7-8: an L2 penalty lambda*||w||^2 has gradient 2*lambda*w, Adam's coupled weight_decay;
+    ``optim.decay: decoupled`` uses AdamW's decay lambda instead.
+    """
+    decoupled = recipe.optim.decay == "decoupled"
+    param_groups = [{"params": [p for p in _params(td) if p.requires_grad], "lr": lr,
+                     "weight_decay": wd if decoupled else 2 * wd} for td, lr, wd in groups]
+    cls = torch.optim.AdamW if decoupled else torch.optim.Adam
+    return cls(param_groups, fused=recipe.optim.fused)
 
 
 def _params(td_params) -> list:
     return list(td_params.flatten_keys().values())
+
+
+class ForeachSoftUpdate(SoftUpdate):
+    """``SoftUpdate`` as one ``torch._foreach_lerp_`` over all target tensors (the same update, one call)."""
+
+    def step(self) -> None:
+        pairs = getattr(self, "_pairs", None)
+        if pairs is None:
+            for name in self._target_names:  # materialise the loss's target parameters, as SoftUpdate.step does
+                getattr(self.loss_module, name)
+            sources, targets = [], []
+            for key, source in self._sources.items():
+                sources += [t.data for t in source.values(True, True)]
+                targets += [t.data for t in self._targets.get(f"target_{key}").values(True, True)]
+            pairs = self._pairs = (targets, sources)
+        torch._foreach_lerp_(pairs[0], pairs[1], 1 - self.eps)
 
 
 def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
@@ -59,7 +79,7 @@ def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) 
     actor = make_actor(obs_keys, obs_dim, action_dim, hidden, dropout)
     if m.name == "bc":
         loss = BCLoss(actor)
-        opt = [_adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe)]
+        opt = [_adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi)], recipe)]
         return Method(loss, opt, actor, None)
     if m.name == "bcq":
         from rm_torchrl.train.bcq import build_bcq
@@ -70,22 +90,20 @@ def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) 
         value = make_value(obs_keys, obs_dim, hidden)
         loss = SharedForwardIQLLoss(actor, qvalue, value, num_qvalue_nets=2, loss_function="l2",
                        temperature=m.temperature, expectile=m.expectile)
-        opt = [
-            _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
-            _adam(_params(loss.qvalue_network_params), o.lr_critic, o.weight_decay_q, recipe),
-            _adam(_params(loss.value_network_params), o.lr_value, o.weight_decay_q, recipe),
-        ]
+        opt = [_adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi),
+                      (loss.qvalue_network_params, o.lr_critic, o.weight_decay_q),
+                      (loss.value_network_params, o.lr_value, o.weight_decay_q)], recipe)]
     else:
         loss = CQLLoss(actor, qvalue, loss_function="l2", min_q_weight=m.cql_alpha,
                        deterministic_backup=True, num_random=10, with_lagrange=False,
                        target_entropy=-float(action_dim))
         opt = [
-            _adam(_params(loss.actor_network_params), o.lr_actor, o.weight_decay_pi, recipe),
-            _adam(_params(loss.qvalue_network_params), o.lr_critic, o.weight_decay_q, recipe),
+            _adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi),
+                   (loss.qvalue_network_params, o.lr_critic, o.weight_decay_q)], recipe),
             torch.optim.Adam([loss.log_alpha], lr=o.lr_actor),
         ]
     loss.make_value_estimator(gamma=recipe.trainer.gamma)
-    return Method(loss, opt, actor, SoftUpdate(loss, tau=recipe.trainer.tau))
+    return Method(loss, opt, actor, ForeachSoftUpdate(loss, tau=recipe.trainer.tau))
 
 
 #: Which entries of each loss output are summed into the objective.
