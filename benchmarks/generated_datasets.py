@@ -1,0 +1,112 @@
+"""Generate every ``rmrl generate`` dataset at full size, then inspect and refine each one.
+
+For each dataset this runs the real commands a user would run, in order:
+
+    rmrl generate NAME --out-name rmrl/NAME-v0 ... --seed S --workers W    (timed)
+    rmrl inspect --dataset rmrl/NAME-v0 --events E --json
+    rmrl refine  --dataset rmrl/NAME-v0 --events E --alpha A --out TMP
+
+and writes ``results.md`` (one table: size, generation time, episodes in which each event holds,
+the refine stage table and the best order) and ``results.json`` to ``--out``, atomically.
+Full sizes follow D4RL: kitchen-partial/-mixed about 137k transitions (D4RL: 136,950),
+relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
+them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
+
+    MINARI_DATASETS_PATH=/tmp/minari python benchmarks/generated_datasets.py --out benchmarks/results/generated
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: name, event spec, alpha (the paper's), and the size flags at full scale
+DATASETS = [
+    ("kitchen-partial", "kitchen", 0.5, {"episodes": 215}),
+    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 215}),
+    ("relocate-human", "relocate", 1.0, {"episodes": 25}),
+    ("door-cloned", "door", 0.5, {"steps": 1_000_000}),
+    ("relocate-cloned", "relocate", 1.0, {"steps": 1_000_000}),
+]
+
+
+def rmrl(*argv: str, capture: bool = False) -> str:
+    """Run ``rmrl ARGV`` in a child process (progress bars pass through to stderr)."""
+    cmd = [sys.executable, "-m", "rm_torchrl.cli.main", *argv]
+    print("$ rmrl " + " ".join(argv), file=sys.stderr, flush=True)
+    out = subprocess.run(cmd, check=True, text=True, stdout=subprocess.PIPE if capture else None)
+    return out.stdout if capture else ""
+
+
+def run_one(name: str, events: str, alpha: float, size: dict, scale: float, seed: int, workers: int,
+            work: Path) -> dict:
+    dataset_id = f"rmrl/{name}-v0"
+    flags = []
+    for key, value in size.items():
+        flags += [f"--{key}", str(max(2, int(value * scale)))]
+    if name == "relocate-cloned":
+        flags += ["--demos", "rmrl/relocate-human-v0"]
+    start = time.perf_counter()
+    rmrl("generate", name, "--out-name", dataset_id, *flags, "--seed", str(seed), "--workers", str(workers),
+         "--overwrite")
+    seconds = time.perf_counter() - start
+    inspect = json.loads(rmrl("inspect", "--dataset", dataset_id, "--events", events, "--json", capture=True))
+    out = work / name
+    rmrl("refine", "--dataset", dataset_id, "--events", events, "--alpha", str(alpha), "--out", str(out))
+    report = json.loads((out / "report.json").read_text())
+    shutil.rmtree(out)
+    return {
+        "dataset": dataset_id, "generator": name, "flags": flags, "seed": seed, "workers": workers,
+        "generation_seconds": round(seconds, 1),
+        "transitions": inspect[0]["transitions"], "episodes": inspect[0]["episodes"],
+        "episodes_holding": {row["event"]: row["episodes_holding"] for row in inspect},
+        "alpha": alpha, "stages": report["stages"], "order": report["order"],
+        "groups": report["groups"], "episodes_reaching": report["episodes_reaching"],
+    }
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = [
+        "| dataset | transitions | episodes | generation | episodes in which each event holds | "
+        "refine (alpha): original / split / ordered / shorter | best order |",
+        "|---|---:|---:|---:|---|---|---|",
+    ]
+    for r in rows:
+        events = ", ".join(f"{k} {v}" for k, v in r["episodes_holding"].items())
+        s = r["stages"]
+        stages = f"({r['alpha']}) {s['original']:,} / {s['split']:,} / {s['ordered']:,} / {s['shorter']:,}"
+        lines.append(f"| {r['dataset']} | {r['transitions']:,} | {r['episodes']:,} | {r['generation_seconds']:.0f} s "
+                     f"| {events} | {stages} | {' → '.join(r['order'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="directory for results.md and results.json")
+    parser.add_argument("--only", nargs="*", default=None, help="generators to run (default: all, in order)")
+    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the full sizes (default 1)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    rows = []
+    with tempfile.TemporaryDirectory() as work:
+        for name, events, alpha, size in DATASETS:
+            if args.only is None or name in args.only:
+                rows.append(run_one(name, events, alpha, size, args.scale, args.seed, args.workers, Path(work)))
+    args.out.mkdir(parents=True, exist_ok=True)
+    for fname, text in (("results.md", markdown(rows)), ("results.json", json.dumps(rows, indent=2) + "\n")):
+        tmp = args.out / f".{fname}.tmp"
+        tmp.write_text(text)
+        tmp.replace(args.out / fname)
+    print(markdown(rows))
+
+
+if __name__ == "__main__":
+    main()
