@@ -3,8 +3,9 @@
 The baseline is set up as TorchRL's offline IQL example: ``IQLLoss`` with vmapped twin critics,
 ``TensorDictReplayBuffer.sample``, one Adam per network, ``SoftUpdate``. Both train on the same
 synthetic data (60-dim observation, 9-dim action, like kitchen) with batch 256 and two hidden
-layers of 256, on all cores. Also reports the peak resident memory of a trainer set up on a
-1M-transition dataset, against the memory of the data itself.
+layers of 256, on all cores. Also reports the peak resident memory of training (the trainer's own
+``prepare_data`` and 50 updates, in a fresh process) on a 1M-transition door-like D4RL file, raw
+and refined, against the size of the file's arrays and net of an idle interpreter's memory.
 """
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ import json
 import resource
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
@@ -21,7 +24,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import IQLLoss, SoftUpdate
 
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import TrainingData
+from rm_torchrl.train.data import TrainingData, prepare_data
 from rm_torchrl.train.losses import LOSS_TERMS, build_method
 from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 from rm_torchrl.train.trainer import gradient_step
@@ -92,18 +95,66 @@ def _rate(step, steps: int) -> float:
     return steps / (time.perf_counter() - start)
 
 
-def _peak_memory_child(n: int) -> None:
-    data = synthetic(n)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    training = _training_data(data)
-    del data
+def write_d4rl_file(path: Path, transitions: int) -> float:
+    """A door-like D4RL HDF5 file of ``transitions`` transitions (200 per episode); returns its array MiB."""
+    import h5py
+    import numpy as np
+
+    from rm_torchrl.data.synthetic import make_door_like
+
+    td = make_door_like(transitions, episode_length=200).reshape(-1, 200)
+    obs = torch.cat([td["observation"], td["next", "observation"][:, -1:]], 1).flatten(0, 1).numpy()
+    pad = torch.zeros(td.shape[0], 1, td["action"].shape[-1])
+    actions = torch.cat([td["action"], pad], 1).flatten(0, 1).numpy()
+    rewards = torch.cat([td["next", "reward"], pad[..., :1]], 1).flatten().numpy()
+    timeouts = np.zeros((td.shape[0], 201), bool)
+    timeouts[:, -1] = True
+    arrays = {"observations": obs, "actions": actions, "rewards": rewards, "terminals": np.zeros_like(timeouts.ravel()),
+              "timeouts": timeouts.ravel()}
+    with h5py.File(path, "w") as f:
+        for key, value in arrays.items():
+            f.create_dataset(key, data=value)
+    return sum(a.nbytes for a in arrays.values()) / 2**20
+
+
+def _peak_memory_child(path: str, refine: bool) -> None:
+    """Peak RSS of the trainer's own set-up (``prepare_data``, ``build_method``) and 50 updates."""
     recipe = Recipe()
-    method = build_method(recipe, training.obs_keys, OBS, ACT)
+    recipe.data.source, recipe.data.refine, recipe.data.events, recipe.data.alpha = path, refine, "door", 0.5
+    recipe.data.episode_ends = "timeouts"
+    training = prepare_data(recipe)
+    method = build_method(recipe, training.obs_keys, training.obs_dim, training.action_dim)
     g = torch.Generator().manual_seed(0)
     for _ in range(50):
         gradient_step(method, LOSS_TERMS["iql"], training.sample(BATCH, g))
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"peak_rss_mib": round(peak / 1024), "after_data_rss_mib": round(base / 1024)}))
+    print(json.dumps({"peak_rss_mib": _peak_rss_mib(), "training_transitions": len(training.buffer)}))
+
+
+def _peak_rss_mib() -> int:
+    """This process's resident-memory high-water mark (VmHWM: unlike ru_maxrss, not inherited through exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return round(int(line.split()[1]) / 1024)
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def peak_memory(transitions: int) -> dict:
+    """Peak memory of training IQL on a ``transitions``-transition D4RL file, raw and refined (the paper's method)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "door-like.hdf5"
+        file_mib = write_d4rl_file(path, transitions)
+        idle = json.loads(_child(["--_memory-idle"]))["peak_rss_mib"]
+        runs = {name: json.loads(_child([f"--_memory-child={path}", f"--_memory-refine={int(refine)}"]))
+                for name, refine in (("iql_raw", False), ("iql_refined_rm", True))}
+    return {"transitions": transitions, "dataset_arrays_mib": round(file_mib), "idle_process_rss_mib": idle,
+            **{name: {**run, "peak_over_dataset": round(run["peak_rss_mib"] / file_mib, 2),
+                      "peak_minus_idle_over_dataset": round((run["peak_rss_mib"] - idle) / file_mib, 2)}
+               for name, run in runs.items()}}
+
+
+def _child(argv: list) -> str:
+    out = subprocess.run([sys.executable, __file__, *argv], check=True, capture_output=True, text=True)
+    return out.stdout.strip().splitlines()[-1]
 
 
 def main() -> None:
@@ -112,20 +163,22 @@ def main() -> None:
     parser.add_argument("--transitions", type=int, default=200_000)
     parser.add_argument("--memory-transitions", type=int, default=1_000_000)
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--_memory-child", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--_memory-child", default="", help=argparse.SUPPRESS)
+    parser.add_argument("--_memory-refine", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--_memory-idle", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args._memory_child:
-        _peak_memory_child(args._memory_child)
+        _peak_memory_child(args._memory_child, bool(args._memory_refine))
+        return
+    if args._memory_idle:  # the interpreter with torch, torchrl and rm_torchrl imported, no data
+        print(json.dumps({"peak_rss_mib": _peak_rss_mib()}))
         return
     data = synthetic(args.transitions)
     baseline, mine = [], []
     for _ in range(args.rounds):  # interleaved, so drifting machine load hits both alike
         baseline.append(plain_torchrl(data, args.steps))
         mine.append(ours(data, args.steps))
-    child = subprocess.run([sys.executable, __file__, f"--_memory-child={args.memory_transitions}"],
-                           check=True, capture_output=True, text=True)
-    memory = json.loads(child.stdout.strip().splitlines()[-1])
-    data_mib = synthetic(1).bytes() * args.memory_transitions / 2**20
+    memory = peak_memory(args.memory_transitions)
     print(json.dumps({
         "threads": torch.get_num_threads(),
         "batch_size": BATCH, "hidden": HIDDEN, "observation_dim": OBS, "action_dim": ACT,
@@ -133,8 +186,7 @@ def main() -> None:
         "ratio_trainer_over_plain": round(max(mine) / max(baseline), 2),
         "ratio_per_round": [round(m / b, 2) for m, b in zip(mine, baseline)],
         "target_ratio_min": 1.8,
-        "memory_1M_transitions": {**memory, "dataset_mib": round(data_mib),
-                                  "peak_rss_over_dataset": round(memory["peak_rss_mib"] / data_mib, 2)},
+        "peak_memory": memory,
     }, indent=2))
 
 

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import TensorDictReplayBuffer, TensorStorage
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
@@ -45,6 +45,20 @@ def _flat_observation(obs) -> torch.Tensor:
     return obs.float()
 
 
+def _normalize_(td: TensorDictBase, loc: torch.Tensor, scale: torch.Tensor) -> None:
+    """(x - loc) / scale on both observation columns, in place unless the two share memory.
+
+    The columns are this module's own tensors (loaders and refinement return fresh ones), so
+    normalising in place saves a copy of the largest columns at the memory peak.
+    """
+    obs, nxt = td.get("observation"), td.get(("next", "observation"))
+    if obs.untyped_storage().data_ptr() == nxt.untyped_storage().data_ptr():
+        nxt = nxt.clone()
+        td.set(("next", "observation"), nxt)
+    for x in (obs, nxt):
+        x.sub_(loc).div_(scale)
+
+
 def prepare_data(recipe: Recipe) -> TrainingData:
     """Loads (and refines) the dataset, adds the RM encoding and fills a replay buffer."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
@@ -79,9 +93,9 @@ def prepare_data(recipe: Recipe) -> TrainingData:
         loc, scale = obs.mean(0), obs.std(0).clamp_min(1e-3)
     else:
         loc, scale = torch.zeros(obs.shape[-1]), torch.ones(obs.shape[-1])
-    for key in ("observation", ("next", "observation")):
-        td.set(key, (td.get(key) - loc) / scale)
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(td.batch_size[0]), batch_size=recipe.trainer.batch_size)
-    buffer.extend(td)
+    del raw, data  # the columns hold what training needs; the rest can go before the next copies
+    _normalize_(td, loc, scale)
+    # the TensorDict becomes the buffer's storage as it is: no second copy of the dataset
+    buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
     obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
     return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report)
