@@ -89,11 +89,16 @@ def test_same_seed_gives_the_same_episodes_with_two_workers(dataset, cache):
 class _Boom(RelocateController):
     """Fails in the middle of the second attempt."""
 
-    calls = 0
+    resets = 0
+
+    def reset(self, env, rng):
+        type(self).resets += 1
+        self.steps = 0
+        super().reset(env, rng)
 
     def act(self, env):
-        type(self).calls += 1
-        if type(self).calls > 600:
+        self.steps += 1
+        if type(self).resets >= 2 and self.steps > 50:  # counted per attempt: episode lengths vary
             raise RuntimeError("boom")
         return super().act(env)
 
@@ -101,11 +106,11 @@ class _Boom(RelocateController):
 def test_failure_mid_run_leaves_nothing_and_keeps_the_old_dataset(dataset, cache):
     before = leftovers(cache)
     boom = Generator(name="boom", env_id="AdroitHandRelocate-v1", policy=_Boom)
-    _Boom.calls = 0
+    _Boom.resets = 0
     with pytest.raises(RuntimeError, match="boom"):
         generate_dataset(boom, "rmrl/relocate-boom-v0", episodes=3, seed=SEED)
     assert leftovers(cache) == before
-    _Boom.calls = 0
+    _Boom.resets = 0
     with pytest.raises(RuntimeError, match="boom"):
         generate_dataset(boom, NAME, episodes=3, seed=SEED, overwrite=True)
     assert leftovers(cache) == before

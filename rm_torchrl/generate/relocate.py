@@ -5,8 +5,11 @@ Why it is built this way (measured on the env, see project issue 4):
 * Adroit actions are *normalised absolute actuator targets*, not velocities or torques. The six arm
   actuators are affine position servos (force = 500 ctrl - 200 q), so on their own they settle near
   q = 2.5 ctrl and sag under gravity; the controller commands
-  ctrl = (200 q_ref + bias force + feed-forward damping) / 500, which holds the arm *at* a joint
-  reference q_ref and lets it follow a moving one without lagging by centimetres.
+  ctrl = (200 q + Kp (q_ref - q) + bias force + feed-forward damping and inertia - damping) / 500,
+  which holds the arm *at* a joint reference q_ref and lets it follow a moving one. The slides carry
+  ~5 kg: with the servo's own stiffness (Kp = 200) and no inertia feed-forward the hand lagged the
+  reach by 7 cm, overshot by 4 cm and took 20-50 steps to settle, which was most of the reach phase
+  and why episodes needed ~250 steps.
 * The hand is positioned by moving q_ref (not the measured q) with limit-aware damped least squares
   IK of the ``S_grasp`` site, evaluated on the reference's own kinematics: a separate reference is
   smooth and cannot wind up against contacts or joint limits. Only during the descent onto the ball
@@ -37,7 +40,10 @@ WRIST = slice(6, 8)    # WRJ1, WRJ0
 FINGERS = slice(8, 30)  # everything below the wrist: weak finger servos
 ARM_STIFFNESS = 200.0  # -biasprm[1] of the arm actuators (force = 500 ctrl - 200 q)
 ARM_GAIN = 500.0
-ARM_DAMPING = 15.0     # extra velocity damping commanded through the servo (its own is 20)
+# the stiffness and extra velocity damping (the joints' own is 20) the arm servos are commanded to have:
+# the servo's own 200 lets the 5 kg slides lag and overshoot a moving reference by centimetres
+ARM_KP = np.array([600.0, 600.0, 600.0, 200.0, 200.0, 200.0])
+ARM_DAMPING = np.array([60.0, 60.0, 60.0, 15.0, 15.0, 15.0])
 
 
 class RelocateController:
@@ -51,7 +57,7 @@ class RelocateController:
     the ranges the per-episode style is drawn from in ``reset``; ``settings()`` returns them all.
     """
 
-    name = "relocate-scripted-v1"
+    name = "relocate-scripted-v2"
     hold_radius = 0.05
 
     def __init__(self, noise: float = 0.02, grasp_offset: float = 0.05, grasp_depth: float = 0.03,
@@ -75,7 +81,8 @@ class RelocateController:
 
     def settings(self) -> dict:
         """The constructor's parameters (noise, jitter, ranges the style is drawn from), for dataset metadata."""
-        return {"controller": self.name, "arm_damping": ARM_DAMPING, "hold_radius": self.hold_radius, **self._settings}
+        return {"controller": self.name, "arm_stiffness": ARM_KP.tolist(), "arm_damping": ARM_DAMPING.tolist(),
+                "hold_radius": self.hold_radius, **self._settings}
 
     # ------------------------------------------------------------------ episode set-up
 
@@ -93,6 +100,7 @@ class RelocateController:
         self._joint_damping = m.dof_damping[ARM].copy()
         self._rng = rng
         self._scratch = mujoco.MjData(m)
+        self._mass = np.zeros((m.nv, m.nv))
         # style of this episode
         self.speed = float(rng.uniform(*self.speed_range))   # max waypoint speed, m per env step
         self.descend_speed = float(rng.uniform(*self.descend_range))
@@ -123,6 +131,9 @@ class RelocateController:
         self._held = 0
         self._jitter = np.zeros(3)
         self._qd_ref = np.zeros(6)
+        self._qdd_force = np.zeros(6)
+        self._wp_vel = np.zeros(3)
+        self._wp_acc = np.zeros(3)
         self._arrived_at = None
         self._dir = None
         self._grasp = None
@@ -252,6 +263,7 @@ class RelocateController:
         weak fingers lose the ball when the arm jerks. Within 5 mm of the goal the waypoint counts as
         arrived (the goal may creep with the ball).
         """
+        before = self.waypoint.copy()
         step = goal - self.waypoint
         dist = float(np.linalg.norm(step))
         v = min(self._v + accel, speed, np.sqrt(2.0 * accel * dist))
@@ -259,6 +271,12 @@ class RelocateController:
             self.waypoint, self._v = goal.copy(), min(v, dist)
         else:
             self.waypoint, self._v = self.waypoint + step * (v / dist), v
+        vel = self.waypoint - before
+        # for the inertia feed-forward; bounded, since a new goal in another direction (a regrasp,
+        # a phase change) turns the waypoint within one step
+        acc = vel - self._wp_vel
+        self._wp_acc = acc * min(1.0, 2.0 * self.reach_accel / max(float(np.linalg.norm(acc)), 1e-12))
+        self._wp_vel = vel
         if dist < 0.005:
             if self._arrived_at is None:
                 self._arrived_at = self.phase_steps
@@ -295,6 +313,11 @@ class RelocateController:
             if not pinned.any():
                 break
             jac[:, pinned] = 0.0
+        # the arm weighs ~5 kg: without feeding the waypoint's acceleration forward it lags and
+        # overshoots the reference by centimetres at every start and stop
+        acc = jac.T @ np.linalg.solve(jac @ jac.T + 1e-3 * np.eye(3), self._wp_acc) / u.dt ** 2
+        mujoco.mj_fullM(m, d, self._mass)
+        self._qdd_force = self._mass[ARM, ARM] @ acc
         dq = np.clip(self.ik_gain * dq, -0.03, 0.03)
         new = np.clip(q + dq, lo, hi)
         self._qd_ref = (new - q) / u.dt  # the reference's velocity, fed forward in _action
@@ -302,14 +325,15 @@ class RelocateController:
         self.q_ref[WRIST] = 0.0
 
     def _action(self, d) -> np.ndarray:
-        """Arm: ctrl that holds q_ref against gravity; wrist at 0; fingers at their targets; plus noise."""
+        """Arm: ctrl that holds and tracks q_ref against gravity; wrist at 0; fingers at their targets; plus noise."""
         ctrl = np.empty(30)
-        # the servos are under-damped (stiffness 200, damping 20, ~5 kg): add velocity damping
-        # and feed the reference velocity forward through both dampings (the joints' own 20 and
-        # ours), else a moving arm lags its reference by (20 + 15) v / 200: ~9 cm at 0.5 m/s
+        # stiffen the servos (ARM_KP) and add velocity damping, and feed the reference velocity forward
+        # through both dampings (the joints' own 20 and ours) and the waypoint's acceleration through the
+        # arm's inertia, else a moving arm lags its reference by centimetres and overshoots when it stops
         damping = self._joint_damping + ARM_DAMPING
-        ctrl[ARM] = (ARM_STIFFNESS * self.q_ref[ARM] + d.qfrc_bias[ARM]
-                     + damping * self._qd_ref - ARM_DAMPING * d.qvel[ARM]) / ARM_GAIN
+        q = d.qpos[ARM]
+        ctrl[ARM] = (ARM_STIFFNESS * q + ARM_KP * (self.q_ref[ARM] - q) + d.qfrc_bias[ARM]
+                     + damping * self._qd_ref + self._qdd_force - ARM_DAMPING * d.qvel[ARM]) / ARM_GAIN
         ctrl[WRIST] = self.q_ref[WRIST] + d.qfrc_bias[WRIST] / 10.0
         action = (ctrl - self._act_mean) / self._act_rng
         action[FINGERS] = self.fingers
