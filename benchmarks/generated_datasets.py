@@ -7,7 +7,8 @@ For each dataset this runs the real commands a user would run, in order:
     rmrl refine  --dataset rmrl/NAME-v0 --events E --alpha A --out TMP
 
 and writes ``results.md`` (one table: size, generation time, episodes in which each event holds,
-the refine stage table and the best order) and ``results.json`` to ``--out``, atomically.
+the refine stage table and the best order) and ``results.json`` to ``--out``, atomically; rows of
+generators not run this time (``--only``) are kept from an earlier ``results.json`` there.
 Full sizes follow D4RL: kitchen-partial/-mixed about 137k transitions (D4RL: 136,950),
 relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
 them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
@@ -95,11 +96,13 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    rows = []
+    previous = args.out / "results.json"  # rows of generators not re-run this time are kept
+    rows = {r["generator"]: r for r in json.loads(previous.read_text())} if previous.is_file() else {}
     with tempfile.TemporaryDirectory() as work:
         for name, events, alpha, size in DATASETS:
             if args.only is None or name in args.only:
-                rows.append(run_one(name, events, alpha, size, args.scale, args.seed, args.workers, Path(work)))
+                rows[name] = run_one(name, events, alpha, size, args.scale, args.seed, args.workers, Path(work))
+    rows = [rows[name] for name, *_ in DATASETS if name in rows]
     args.out.mkdir(parents=True, exist_ok=True)
     for fname, text in (("results.md", markdown(rows)), ("results.json", json.dumps(rows, indent=2) + "\n")):
         tmp = args.out / f".{fname}.tmp"
