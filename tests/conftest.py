@@ -7,6 +7,19 @@ from pathlib import Path
 import pytest
 
 
+def generate_cli(*argv: str) -> int:
+    """``rmrl generate ARGV`` through the subcommand's own parser and ``run``."""
+    import argparse
+
+    from rm_torchrl.cli.generate import add_arguments, run
+
+    parser = argparse.ArgumentParser(prog="rmrl generate")
+    add_arguments(parser)
+    args = parser.parse_args(list(argv))
+    args.command = "generate"
+    return run(args)
+
+
 def leftovers(cache: Path) -> list[str]:
     """Everything in a Minari cache, hidden temporary directories included."""
     return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []

@@ -6,14 +6,12 @@ records 2 episodes of the same seed with 2 workers, which must be the first 2 ep
 """
 from __future__ import annotations
 
-import argparse
 
 import minari
 import numpy as np
 import pytest
-from conftest import leftovers
+from conftest import generate_cli, leftovers
 
-from rm_torchrl.cli.generate import add_arguments, run
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, Generator, RelocateController, generate_dataset
@@ -23,18 +21,10 @@ NAME = "rmrl/relocate-test-v0"
 SEED = 3
 
 
-def cli(*argv: str) -> int:
-    """``rmrl generate ARGV`` through the subcommand's own parser and ``run``."""
-    parser = argparse.ArgumentParser(prog="rmrl generate")
-    add_arguments(parser)
-    args = parser.parse_args(list(argv))
-    args.command = "generate"
-    return run(args)
-
 
 @pytest.fixture(scope="module")
 def dataset(cache):
-    assert cli("relocate-human", "--out-name", NAME, "--episodes", "3", "--seed", str(SEED)) == 0
+    assert generate_cli("relocate-human", "--out-name", NAME, "--episodes", "3", "--seed", str(SEED)) == 0
     return minari.load_dataset(NAME)
 
 
@@ -76,7 +66,7 @@ def test_load_minari_and_refine_in_event_order(dataset):
 
 def test_same_seed_gives_the_same_episodes_with_two_workers(dataset, cache):
     name = "rmrl/relocate-workers-v0"
-    assert cli("relocate-human", "--out-name", name, "--episodes", "2", "--seed", str(SEED), "--workers", "2") == 0
+    assert generate_cli("relocate-human", "--out-name", name, "--episodes", "2", "--seed", str(SEED), "--workers", "2") == 0
     two = observations(minari.load_dataset(name))
     three = observations(dataset)
     assert len(two) == 2
@@ -128,15 +118,15 @@ def test_too_few_successes_is_an_error_and_writes_nothing(cache):
 @pytest.mark.parametrize("name", ["relocate", "rmrl/relocate", "bad name-v0", "rmrl/relocate-v"])
 def test_bad_name(cache, name):
     with pytest.raises(RMError, match="bad dataset name"):
-        cli("relocate-human", "--out-name", name, "--episodes", "1")
+        generate_cli("relocate-human", "--out-name", name, "--episodes", "1")
 
 
 def test_existing_dataset_needs_overwrite(dataset, cache, capsys):
     with pytest.raises(RMError, match="already exists.*--overwrite"):
-        cli("relocate-human", "--out-name", NAME, "--episodes", "1")
+        generate_cli("relocate-human", "--out-name", NAME, "--episodes", "1")
     assert minari.load_dataset(NAME).total_episodes == 3
-    assert cli("relocate-human", "--out-name", "rmrl/relocate-replace-v0", "--episodes", "1") == 0
-    assert cli("relocate-human", "--out-name", "rmrl/relocate-replace-v0", "--episodes", "2", "--overwrite") == 0
+    assert generate_cli("relocate-human", "--out-name", "rmrl/relocate-replace-v0", "--episodes", "1") == 0
+    assert generate_cli("relocate-human", "--out-name", "rmrl/relocate-replace-v0", "--episodes", "2", "--overwrite") == 0
     assert minari.load_dataset("rmrl/relocate-replace-v0").total_episodes == 2
     assert "wrote Minari dataset rmrl/relocate-replace-v0" in capsys.readouterr().out
 
@@ -144,7 +134,7 @@ def test_existing_dataset_needs_overwrite(dataset, cache, capsys):
 @pytest.mark.parametrize("flag,value", [("--episodes", "0"), ("--workers", "0"), ("--max-steps", "0")])
 def test_bad_counts(cache, flag, value):
     with pytest.raises(RMError, match="at least 1"):
-        cli("relocate-human", "--out-name", "rmrl/relocate-bad-v0", flag, value)
+        generate_cli("relocate-human", "--out-name", "rmrl/relocate-bad-v0", flag, value)
 
 
 def test_rmrl_main_reports_errors_without_traceback(cache, capsys):

@@ -6,13 +6,12 @@ recorded achieved goals, not from the controller's plan.
 """
 from __future__ import annotations
 
-import argparse
 
 import minari
 import numpy as np
 import pytest
+from conftest import generate_cli
 
-from rm_torchrl.cli.generate import add_arguments, run
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
@@ -24,23 +23,16 @@ SEED = 0  # attempt 1 of seed 0 plays all four goal tasks and completes them
 MAX_STEPS = 800
 
 
-def cli(*argv: str) -> int:
-    parser = argparse.ArgumentParser(prog="rmrl generate")
-    add_arguments(parser)
-    args = parser.parse_args(list(argv))
-    args.command = "generate"
-    return run(args)
-
 
 @pytest.fixture(scope="module")
 def partial(cache):
-    assert cli("kitchen-partial", "--out-name", PARTIAL, "--episodes", "3", "--seed", str(SEED)) == 0
+    assert generate_cli("kitchen-partial", "--out-name", PARTIAL, "--episodes", "3", "--seed", str(SEED)) == 0
     return minari.load_dataset(PARTIAL)
 
 
 @pytest.fixture(scope="module")
 def mixed(cache):
-    assert cli("kitchen-mixed", "--out-name", MIXED, "--episodes", "3", "--seed", str(SEED),
+    assert generate_cli("kitchen-mixed", "--out-name", MIXED, "--episodes", "3", "--seed", str(SEED),
                "--max-steps", str(MAX_STEPS)) == 0
     return minari.load_dataset(MIXED)
 

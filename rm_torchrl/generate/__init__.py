@@ -10,6 +10,15 @@ from rm_torchrl.generate.kitchen import ENV_KWARGS as KITCHEN_ENV_KWARGS
 from rm_torchrl.generate.kitchen import KitchenPlayController, keep_all, keep_without_all_goals
 from rm_torchrl.generate.relocate import RelocateController
 
+
+
+def _kitchen(name: str, mix: str, keep, description: str) -> Generator:
+    """A FrankaKitchen-v1 play generator (all seven tasks in the observation, 800-step episodes)."""
+    return Generator(name=name, env_id="FrankaKitchen-v1", policy=KitchenPlayController, description=description,
+                     env_kwargs=KITCHEN_ENV_KWARGS, policy_kwargs={"mix": mix}, keep=keep, events="kitchen",
+                     max_steps=800)
+
+
 GENERATORS = {
     "relocate-human": Generator(
         name="relocate-human",
@@ -19,30 +28,14 @@ GENERATORS = {
                     "variety of speed and style)",
         events="relocate",
     ),
-    "kitchen-partial": Generator(
-        name="kitchen-partial",
-        env_id="FrankaKitchen-v1",
-        policy=KitchenPlayController,
-        description="Franka kitchen play like D4RL kitchen-partial: scripted skills in sampled orders; about a third "
-                    "of the episodes do all four goal tasks (microwave, kettle, light switch, slide cabinet), all "
-                    "episodes are kept",
-        env_kwargs=KITCHEN_ENV_KWARGS,
-        policy_kwargs={"mix": "partial"},
-        keep=keep_all,
-        events="kitchen",
-        max_steps=800,
+    "kitchen-partial": _kitchen(
+        "kitchen-partial", "partial", keep_all,
+        "Franka kitchen play like D4RL kitchen-partial: scripted skills in sampled orders; about a third of the "
+        "episodes do all four goal tasks (microwave, kettle, light switch, slide cabinet), all episodes are kept",
     ),
-    "kitchen-mixed": Generator(
-        name="kitchen-mixed",
-        env_id="FrankaKitchen-v1",
-        policy=KitchenPlayController,
-        description="Franka kitchen play like D4RL kitchen-mixed: subsets of the tasks, no episode completes all four "
-                    "goal tasks",
-        env_kwargs=KITCHEN_ENV_KWARGS,
-        policy_kwargs={"mix": "mixed"},
-        keep=keep_without_all_goals,
-        events="kitchen",
-        max_steps=800,
+    "kitchen-mixed": _kitchen(
+        "kitchen-mixed", "mixed", keep_without_all_goals,
+        "Franka kitchen play like D4RL kitchen-mixed: subsets of the tasks, no episode completes all four goal tasks",
     ),
 }
 

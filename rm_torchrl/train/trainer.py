@@ -144,6 +144,7 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     shown: dict = {}
     completed = start
     started = time.perf_counter()
+    eval_seconds = 0.0  # updates_per_second counts gradient steps only
     try:
         for step in range(start + 1, recipe.trainer.steps + 1):
             losses = gradient_step(method, terms, data.sample(recipe.trainer.batch_size, generator))
@@ -152,9 +153,12 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
                     value = float(losses.get(t).detach())
                     logger.log_scalar(t, value, step=step)
                     shown[t.removeprefix("loss_")] = f"{value:.3g}"
-                logger.log_scalar("updates_per_second", (step - start) / (time.perf_counter() - started), step=step)
+                train_seconds = time.perf_counter() - started - eval_seconds
+                logger.log_scalar("updates_per_second", (step - start) / train_seconds, step=step)
             if evaluator is not None and (step % recipe.eval.every == 0 or step == recipe.trainer.steps):
+                eval_started = time.perf_counter()
                 result = evaluate(step)
+                eval_seconds += time.perf_counter() - eval_started
                 shown["score"] = f"{result['score']:.1f}"
                 shown["events"] = f"{result['events_mean']:.2f}"
             if step % recipe.trainer.checkpoint_every == 0:
