@@ -9,7 +9,7 @@ For each dataset this runs the real commands a user would run, in order:
 and writes ``results.md`` (one table: size, generation time, episodes in which each event holds,
 the refine stage table and the best order) and ``results.json`` to ``--out``, atomically; rows of
 generators not run this time (``--only``) are kept from an earlier ``results.json`` there.
-Full sizes follow D4RL: kitchen-partial/-mixed about 137k transitions (D4RL: 136,950),
+Full sizes follow D4RL: kitchen-partial/-mixed 215 episodes (about 110k transitions; D4RL: 136,950),
 relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
 them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
 
