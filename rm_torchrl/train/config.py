@@ -73,6 +73,7 @@ class TrainerConfig:
     log_every: int = 1000
     checkpoint_every: int = 50_000
     threads: int = 0  # 0: all cores
+    compile: bool = False  # torch.compile the loss: ~25% more updates/s on CPU, after ~10 s of compilation
 
 
 @dataclass

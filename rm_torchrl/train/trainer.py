@@ -23,7 +23,7 @@ from tqdm import tqdm
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
-from rm_torchrl.train.losses import LOSS_TERMS, build_method
+from rm_torchrl.train.losses import LOSS_TERMS, build_method, compile_method
 
 EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes")
 
@@ -62,7 +62,7 @@ def _save(path: Path, state: dict) -> None:
 
 def gradient_step(method, terms, batch):
     """One update of every network of ``method`` on ``batch``; returns the loss TensorDict."""
-    losses = method.loss(batch)
+    losses = method.compute_loss(batch)
     total = sum(losses.get(t) for t in terms)
     for opt in method.optimizers:
         opt.zero_grad(set_to_none=True)
@@ -72,6 +72,19 @@ def gradient_step(method, terms, batch):
     if method.target_updater is not None:
         method.target_updater.step()
     return losses
+
+
+def _first_step(method, terms, batch):
+    """The first update, in which ``torch.compile`` compiles: if that fails, say so and train eagerly."""
+    if method.compiled is None:
+        return gradient_step(method, terms, batch)
+    try:
+        return gradient_step(method, terms, batch)
+    except Exception as err:  # e.g. no C++ compiler: eager training is slower, not different; real errors recur
+        method.compiled = None
+        tqdm.write(f"warning: torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
+                   "training without it (set trainer.compile=false to skip the attempt)", file=sys.stderr)
+        return gradient_step(method, terms, batch)
 
 
 def train(recipe: Recipe, progress: bool = True) -> Path:
@@ -91,6 +104,8 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     # --- data and model ---------------------------------------------------------------------
     data = prepare_data(recipe)
     method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    if recipe.trainer.compile:
+        compile_method(method)
     terms = LOSS_TERMS[recipe.method.name]
     generator = torch.Generator().manual_seed(recipe.seed)
     (run_dir / "recipe.yaml").write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
@@ -147,7 +162,8 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     eval_seconds = 0.0  # updates_per_second counts gradient steps only
     try:
         for step in range(start + 1, recipe.trainer.steps + 1):
-            losses = gradient_step(method, terms, data.sample(recipe.trainer.batch_size, generator))
+            update = _first_step if step == start + 1 else gradient_step
+            losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
                 for t in terms:
                     value = float(losses.get(t).detach())
