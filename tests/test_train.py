@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import h5py
@@ -192,6 +193,7 @@ def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkey
         torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
 
 
+@pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++")), reason="torch.compile on CPU needs a C++ compiler")
 def test_compiled_loss_matches_eager():
     from tensordict import TensorDict
 
@@ -236,3 +238,24 @@ def test_failed_compile_trains_eagerly(tmp_path, dataset, monkeypatch, capsys):
                     progress=False)
     assert "torch.compile failed (RuntimeError: no C++ compiler here)" in capsys.readouterr().err
     assert len(read_scalar(run_dir, "loss_qvalue")) == 2  # steps 20 and 30 were trained and logged
+
+
+def test_multirun_threads_share_the_cores_unless_set(monkeypatch):
+    from rm_torchrl.cli import train as train_cli
+
+    launched = []
+
+    class FakeProcess:
+        def __init__(self, cmd, env=None):
+            launched.append((cmd, env))
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(train_cli.subprocess, "Popen", FakeProcess)
+    monkeypatch.setattr(train_cli.os, "cpu_count", lambda: 4)
+    train_cli.run_many([["r.yaml", "seed=0"], ["r.yaml", "seed=1", "trainer.threads=1"]], jobs=2)
+    (first, first_env), (second, second_env) = launched
+    assert "trainer.threads=2" in first and first_env["OMP_NUM_THREADS"] == "2"
+    assert [a for a in second if a.startswith("trainer.threads=")] == ["trainer.threads=1"]  # the user's value wins
+    assert second_env["OMP_NUM_THREADS"] == "1"

@@ -40,7 +40,11 @@ def run(args) -> int:
 
 
 def run_many(runs: list[list[str]], jobs: int) -> None:
-    """``rmrl train`` on each argument list, ``jobs`` processes at a time sharing the cores."""
+    """``rmrl train`` on each argument list, ``jobs`` processes at a time sharing the cores.
+
+    Each run gets ``cores // jobs`` threads (for torch and OpenMP) unless its arguments set
+    ``trainer.threads`` themselves: more threads than cores in all makes every run several times slower.
+    """
     jobs = max(1, jobs)
     threads = max(1, (os.cpu_count() or 1) // jobs)
     failures = []
@@ -50,9 +54,12 @@ def run_many(runs: list[list[str]], jobs: int) -> None:
         while pending or running:
             while pending and len(running) < jobs:
                 argv = pending.pop(0)
+                own = [a for a in argv if a.startswith("trainer.threads=")]
+                n = int(own[-1].split("=", 1)[1] or 0) if own else threads
                 cmd = [sys.executable, "-m", "rm_torchrl.cli.main", "train", *argv,
-                       f"trainer.threads={threads}", "--no-progress"]
-                running.append((subprocess.Popen(cmd), argv))
+                       *([] if own else [f"trainer.threads={threads}"]), "--no-progress"]
+                env = {**os.environ, "OMP_NUM_THREADS": str(n)} if n > 0 else None
+                running.append((subprocess.Popen(cmd, env=env), argv))
             proc, argv = running.pop(0)
             if proc.wait() != 0:
                 failures.append(" ".join(argv))
