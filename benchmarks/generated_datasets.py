@@ -9,7 +9,7 @@ For each dataset this runs the real commands a user would run, in order:
 and writes ``results.md`` (one table: size, generation time, episodes in which each event holds,
 the refine stage table and the best order) and ``results.json`` to ``--out``, atomically; rows of
 generators not run this time (``--only``) are kept from an earlier ``results.json`` there.
-Full sizes follow D4RL: kitchen-partial/-mixed 215 episodes (about 110k transitions; D4RL: 136,950),
+Full sizes follow D4RL: kitchen-partial/-mixed 265 episodes (about 137k transitions, as D4RL's 136,950),
 relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
 them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
 
@@ -29,8 +29,8 @@ from pathlib import Path
 
 #: name, event spec, alpha (the paper's), and the size flags at full scale
 DATASETS = [
-    ("kitchen-partial", "kitchen", 0.5, {"episodes": 215}),
-    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 215}),
+    ("kitchen-partial", "kitchen", 0.5, {"episodes": 265}),
+    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 265}),
     ("relocate-human", "relocate", 1.0, {"episodes": 25}),
     ("door-cloned", "door", 0.5, {"steps": 1_000_000}),
     ("relocate-cloned", "relocate", 1.0, {"steps": 1_000_000}),
@@ -82,7 +82,8 @@ def markdown(rows: list[dict]) -> str:
         events = ", ".join(f"{k} {v}" for k, v in r["episodes_holding"].items())
         s = r["stages"]
         stages = f"({r['alpha']}) {s['original']:,} / {s['split']:,} / {s['ordered']:,} / {s['shorter']:,}"
-        lines.append(f"| {r['dataset']} | {r['transitions']:,} | {r['episodes']:,} | {r['generation_seconds']:.0f} s "
+        lines.append(f"| {r['dataset']} | {r['transitions']:,} | {r['episodes']:,} | {r['generation_seconds']:.0f} s, "
+                     f"{r['workers']} worker{'s' if r['workers'] > 1 else ''} "
                      f"| {events} | {stages} | {' → '.join(r['order'])} |")
     return "\n".join(lines) + "\n"
 
@@ -90,7 +91,8 @@ def markdown(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True, help="directory for results.md and results.json")
-    parser.add_argument("--only", nargs="*", default=None, help="generators to run (default: all, in order)")
+    parser.add_argument("--only", nargs="*", default=None,
+                        help="generators to run (default: all, in order); with no names, only redraw the table")
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of the full sizes (default 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=2)
