@@ -34,7 +34,6 @@ class SharedForwardIQLLoss(IQLLoss):
             and _direct_actor(self.actor_network) is not None
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys = self.tensor_keys
         with torch.no_grad():
             min_q = self._q(tensordict, self.target_qvalue_network_params).min(0)[0]
         value = self._v(tensordict, self.value_network_params)
