@@ -39,15 +39,14 @@ import numpy as np
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate.record import (
-    GENERATE_METADATA_KEY,
     Episode,
     Generator,
     _worker_attempt,
+    episode_buffer,
     make_env,
     run_episode,
+    write_generated,
 )
-
-_TMP_PREFIX = ".rmrl-generate-"
 DEFAULT_DOOR_DEMOS = "../shared/data/d4rl/door-human-v0.hdf5"  # relative to the project root, like the demo
 
 
@@ -402,41 +401,20 @@ def generate_cloned(kind: str, name: str, steps: int = 1_000_000, seed: int = 0,
 
 
 def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, rows: list, env, record: dict) -> None:
-    import minari
-    from minari.data_collector import EpisodeBuffer
-
-    from rm_torchrl.data.d4rl_to_minari import _requirements, building_in_cache
-
-    buffers = []
-    for o, a, r, term, _meta, env_seed in rows:
-        n = len(a)
-        terminations = np.zeros(n, bool)
-        terminations[-1] = term
-        truncations = np.zeros(n, bool)
-        truncations[-1] = not term
-        buffers.append(EpisodeBuffer(seed=env_seed, observations=np.asarray(o, np.float64),
-                                     actions=np.asarray(a, np.float32), rewards=np.asarray(r, np.float64),
-                                     terminations=terminations, truncations=truncations))
-    versions = record["versions"]
     mix = record["mix"]
-    with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"], _TMP_PREFIX):
-        dataset = minari.create_dataset_from_buffers(
-            dataset_id,
-            buffers,
-            env=env,
-            algorithm_name=f"behaviour cloning + Gaussian noise ({record['generator']}, D4RL-style)",
-            author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
-            code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/cloned.py",
-            description=(
-                f"{record['generator']} made by `rmrl generate {record['generator']} --steps {record['steps']} "
-                f"--seed {record['seed']}`: {mix['demo_transitions']} transitions of human demonstrations from "
-                f"{record['demos']['source']} ({mix['demo_episodes']} episodes, repeated) and "
-                f"{mix['rollout_transitions']} transitions ({mix['rollout_episodes']} episodes) of a behaviour-cloned "
-                f"MLP trained on them, rolled out with Gaussian action noise of std {record['rollouts']['noise']}. "
-                f"{record['seeding']}."
-            ),
-            requirements=_requirements(env),
-            jpeg_encoding=False,
-        )
-        dataset.storage.update_episode_metadata([row[4] for row in rows])
-        dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
+    write_generated(
+        dataset_id, final, cache, overwrite,
+        [episode_buffer(np.asarray(o, np.float64), np.asarray(a, np.float32), np.asarray(r, np.float64), term, seed)
+         for o, a, r, term, _meta, seed in rows],
+        [row[4] for row in rows], env, record,
+        algorithm=f"behaviour cloning + Gaussian noise ({record['generator']}, D4RL-style)",
+        code_path="rm_torchrl/generate/cloned.py",
+        description=(
+            f"{record['generator']} made by `rmrl generate {record['generator']} --steps {record['steps']} "
+            f"--seed {record['seed']}`: {mix['demo_transitions']} transitions of human demonstrations from "
+            f"{record['demos']['source']} ({mix['demo_episodes']} episodes, repeated) and "
+            f"{mix['rollout_transitions']} transitions ({mix['rollout_episodes']} episodes) of a behaviour-cloned "
+            f"MLP trained on them, rolled out with Gaussian action noise of std {record['rollouts']['noise']}. "
+            f"{record['seeding']}."
+        ),
+    )

@@ -272,44 +272,54 @@ def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: 
     return dataset_id
 
 
-def _buffer(episode: Episode):
+def episode_buffer(observations, actions, rewards, terminated: bool, env_seed: int):
+    """A Minari ``EpisodeBuffer`` of one episode: T+1 observations, T actions, ended by termination or truncation."""
     from minari.data_collector import EpisodeBuffer
 
-    n = len(episode.actions)
+    n = len(actions)
     terminations = np.zeros(n, bool)
-    terminations[-1] = episode.terminated
+    terminations[-1] = terminated
     truncations = np.zeros(n, bool)
-    truncations[-1] = not episode.terminated
-    return EpisodeBuffer(seed=episode.env_seed, observations=episode.observations, actions=episode.actions,
-                         rewards=episode.rewards, terminations=terminations, truncations=truncations)
+    truncations[-1] = not terminated
+    return EpisodeBuffer(seed=env_seed, observations=observations, actions=actions, rewards=rewards,
+                         terminations=terminations, truncations=truncations)
 
 
-def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: list[Episode], env, record: dict) -> None:
-    """Build the dataset in a hidden temporary cache, check it, and move it into place (see the module doc)."""
+def write_generated(dataset_id: str, final: Path, cache: Path, overwrite: bool, buffers: list, episode_metadata: list,
+                    env, record: dict, algorithm: str, code_path: str, description: str) -> None:
+    """Build a generated dataset in a hidden temporary cache, check it, and move it into place (see the module doc).
+
+    ``record`` (with ``versions``, ``episodes`` and ``transitions``) goes into the dataset metadata
+    under ``GENERATE_METADATA_KEY``; ``episode_metadata`` holds one dict per buffer.
+    """
     import minari
     from rm_torchrl.data.d4rl_to_minari import _requirements, building_in_cache
 
-    versions = record["versions"]
+    version = record["versions"]["rm_torchrl"]
     with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"],
                            _TMP_PREFIX):
         dataset = minari.create_dataset_from_buffers(
-            dataset_id,
-            [_buffer(ep) for ep in kept],
-            env=env,
-            algorithm_name=f"scripted policy {record['policy']} ({record['generator']})",
-            author={f"rm_torchrl {versions['rm_torchrl']} (rmrl generate)"},
-            code_permalink=f"rm_torchrl=={versions['rm_torchrl']}: rm_torchrl/generate/",
-            description=(
-                f"{record['episodes']} scripted episodes ({record['keep']}) in {record['env_id']} made by "
-                f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
-                f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
-                f"{record['seeding']}."
-            ),
-            requirements=_requirements(env),
-            jpeg_encoding=False,
+            dataset_id, buffers, env=env, algorithm_name=algorithm,
+            author={f"rm_torchrl {version} (rmrl generate)"},
+            code_permalink=f"rm_torchrl=={version}: {code_path}",
+            description=description, requirements=_requirements(env), jpeg_encoding=False,
         )
-        dataset.storage.update_episode_metadata(
-            [{"attempt": ep.attempt, "env_seed": ep.env_seed, "steps": len(ep.actions), **ep.style}
-             for ep in kept]
-        )
+        dataset.storage.update_episode_metadata(episode_metadata)
         dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
+
+
+def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: list[Episode], env, record: dict) -> None:
+    write_generated(
+        dataset_id, final, cache, overwrite,
+        [episode_buffer(ep.observations, ep.actions, ep.rewards, ep.terminated, ep.env_seed) for ep in kept],
+        [{"attempt": ep.attempt, "env_seed": ep.env_seed, "steps": len(ep.actions), **ep.style} for ep in kept],
+        env, record,
+        algorithm=f"scripted policy {record['policy']} ({record['generator']})",
+        code_path="rm_torchrl/generate/",
+        description=(
+            f"{record['episodes']} scripted episodes ({record['keep']}) in {record['env_id']} made by "
+            f"`rmrl generate {record['generator']} --seed {record['seed']}` (episodes of at most "
+            f"{record['max_steps']} steps, speed and style drawn per episode from the seed). "
+            f"{record['seeding']}."
+        ),
+    )
