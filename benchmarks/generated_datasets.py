@@ -13,6 +13,11 @@ Full sizes follow D4RL: kitchen-partial/-mixed 265 episodes (about 137k transiti
 relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
 them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
 
+Generation time is also given against a baseline measured in the same run: the time one process
+needs to step the same environment with random actions for the dataset's number of transitions
+(``generate_throughput.bare_rate``), so ``generation / bare`` below 1 means the workers generate
+faster than a single bare env steps.
+
     MINARI_DATASETS_PATH=/tmp/minari python benchmarks/generated_datasets.py --out benchmarks/results/generated
 """
 from __future__ import annotations
@@ -45,6 +50,20 @@ def rmrl(*argv: str, capture: bool = False) -> str:
     return out.stdout if capture else ""
 
 
+def bare_steps_per_s(name: str, steps: int = 3000) -> float:
+    """Random-action env steps/s of the generator's environment, one process (the baseline)."""
+    from generate_throughput import bare_rate
+
+    from rm_torchrl.generate import GENERATORS
+    from rm_torchrl.generate.cloned import CLONED
+
+    if name in GENERATORS:
+        env_id, kwargs = GENERATORS[name].env_id, GENERATORS[name].env_kwargs
+    else:
+        env_id, kwargs = CLONED[name].env_id, None
+    return bare_rate(env_id, steps, env_kwargs=kwargs)["steps_per_s"]
+
+
 def run_one(name: str, events: str, alpha: float, size: dict, scale: float, seed: int, workers: int,
             work: Path) -> dict:
     dataset_id = f"rmrl/{name}-v0"
@@ -57,6 +76,7 @@ def run_one(name: str, events: str, alpha: float, size: dict, scale: float, seed
     rmrl("generate", name, "--out-name", dataset_id, *flags, "--seed", str(seed), "--workers", str(workers),
          "--overwrite")
     seconds = time.perf_counter() - start
+    bare = bare_steps_per_s(name)
     inspect = json.loads(rmrl("inspect", "--dataset", dataset_id, "--events", events, "--json", capture=True))
     out = work / name
     rmrl("refine", "--dataset", dataset_id, "--events", events, "--alpha", str(alpha), "--out", str(out))
@@ -64,7 +84,8 @@ def run_one(name: str, events: str, alpha: float, size: dict, scale: float, seed
     shutil.rmtree(out)
     return {
         "dataset": dataset_id, "generator": name, "flags": flags, "seed": seed, "workers": workers,
-        "generation_seconds": round(seconds, 1),
+        "generation_seconds": round(seconds, 1), "bare_steps_per_s": round(bare, 1),
+        "generation_over_bare": round(seconds / (inspect[0]["transitions"] / bare), 2),
         "transitions": inspect[0]["transitions"], "episodes": inspect[0]["episodes"],
         "episodes_holding": {row["event"]: row["episodes_holding"] for row in inspect},
         "alpha": alpha, "stages": report["stages"], "order": report["order"],
@@ -74,16 +95,16 @@ def run_one(name: str, events: str, alpha: float, size: dict, scale: float, seed
 
 def markdown(rows: list[dict]) -> str:
     lines = [
-        "| dataset | transitions | episodes | generation | episodes in which each event holds | "
-        "refine (alpha): original / split / ordered / shorter | best order |",
-        "|---|---:|---:|---:|---|---|---|",
+        "| dataset | transitions | episodes | generation | generation / bare stepping | "
+        "episodes in which each event holds | refine (alpha): original / split / ordered / shorter | best order |",
+        "|---|---:|---:|---:|---:|---|---|---|",
     ]
     for r in rows:
         events = ", ".join(f"{k} {v}" for k, v in r["episodes_holding"].items())
         s = r["stages"]
         stages = f"({r['alpha']}) {s['original']:,} / {s['split']:,} / {s['ordered']:,} / {s['shorter']:,}"
         lines.append(f"| {r['dataset']} | {r['transitions']:,} | {r['episodes']:,} | {r['generation_seconds']:.0f} s, "
-                     f"{r['workers']} worker{'s' if r['workers'] > 1 else ''} "
+                     f"{r['workers']} worker{'s' if r['workers'] > 1 else ''} | {r['generation_over_bare']:.2f} "
                      f"| {events} | {stages} | {' → '.join(r['order'])} |")
     return "\n".join(lines) + "\n"
 

@@ -30,8 +30,8 @@ class SharedForwardIQLLoss(IQLLoss):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._fast = _direct_mlp(self.value_network) is not None and _direct_mlp(self.qvalue_network) is not None \
-            and _direct_actor(self.actor_network) is not None
+        self._fast = (_is_concat_operator(self.value_network) and _is_concat_operator(self.qvalue_network)
+                      and _is_concat_actor(self.actor_network))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         with torch.no_grad():
@@ -103,20 +103,15 @@ class SharedForwardIQLLoss(IQLLoss):
         return self._reduce_loss(loss, tensordict=tensordict)
 
 
-def _direct_mlp(network) -> ConcatMLP | None:
-    """The ``ConcatMLP`` a value/Q operator wraps, when its output is that MLP's output."""
-    if type(network) is ValueOperator and isinstance(network.module, ConcatMLP):
-        return network.module
-    return None
+def _is_concat_operator(network) -> bool:
+    """A value/Q operator whose output is its ``ConcatMLP``'s output (``make_value`` / ``make_qvalue``)."""
+    return type(network) is ValueOperator and isinstance(network.module, ConcatMLP)
 
 
-def _direct_actor(actor) -> ConcatMLP | None:
-    """The ``ConcatMLP`` of an ``rm_torchrl.train.networks.make_actor`` policy."""
+def _is_concat_actor(actor) -> bool:
+    """A ``make_actor`` policy: ``ConcatMLP`` then ``NormalParamExtractor``, then the distribution."""
     if type(actor) is not ProbabilisticActor or len(actor.module) != 2:
-        return None
+        return False
     splat = getattr(actor.module[0], "module", None)
-    if not isinstance(splat, _Splat) or len(splat.seq) != 2:
-        return None
-    if isinstance(splat.seq[0], ConcatMLP) and isinstance(splat.seq[1], NormalParamExtractor):
-        return splat.seq[0]
-    return None
+    return (isinstance(splat, _Splat) and len(splat.seq) == 2 and isinstance(splat.seq[0], ConcatMLP)
+            and isinstance(splat.seq[1], NormalParamExtractor))
