@@ -37,7 +37,7 @@ class PlainValue(nn.Module):
         return self.net(torch.cat(inputs, -1))
 
 
-def build(cls, seed, generic=False):
+def build(cls, seed, generic=False, actor="tanh_normal"):
     torch.manual_seed(seed)
     keys = ["observation", "rm_encoding"]
     if generic:
@@ -45,7 +45,7 @@ def build(cls, seed, generic=False):
         value = ValueOperator(PlainValue(OBS + ENC), in_keys=keys)
     else:
         qvalue, value = make_qvalue(keys, OBS + ENC, ACT, [16, 16]), make_value(keys, OBS + ENC, [16, 16])
-    loss = cls(make_actor(keys, OBS + ENC, ACT, [16, 16]), qvalue, value, loss_function="l2", temperature=0.5,
+    loss = cls(make_actor(keys, OBS + ENC, ACT, [16, 16], distribution=actor), qvalue, value, loss_function="l2", temperature=0.5,
                expectile=0.7)
     loss.make_value_estimator(gamma=0.99)
     return loss
@@ -53,15 +53,21 @@ def build(cls, seed, generic=False):
 
 def test_fast_path_only_for_known_networks():
     assert build(SharedForwardIQLLoss, 0)._fast
+    assert build(SharedForwardIQLLoss, 0, actor="gaussian")._fast
     assert not build(SharedForwardIQLLoss, 0, generic=True)._fast
 
 
+@pytest.mark.parametrize("actor", ["tanh_normal", "gaussian"])
 @pytest.mark.parametrize("generic", [False, True], ids=["fast", "generic"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_same_losses_and_gradients(seed, generic):
-    ref, fast = build(IQLLoss, seed, generic), build(SharedForwardIQLLoss, seed, generic)
+def test_same_losses_and_gradients(seed, generic, actor):
+    ref, fast = build(IQLLoss, seed, generic, actor), build(SharedForwardIQLLoss, seed, generic, actor)
     fast.load_state_dict(ref.state_dict())
     with torch.no_grad():  # move the targets away from the online networks
+        for loss in (ref, fast):  # a log-std away from its initial 0, the same in both
+            for k, p in loss.actor_network_params.items(True, True):
+                if k[-1] == "log_std":
+                    p.copy_(torch.linspace(-1, 0.5, p.numel()))
         for p in list(ref.target_qvalue_network_params.values(True, True)):
             p.add_(0.1)
         for p in list(fast.target_qvalue_network_params.values(True, True)):
@@ -77,6 +83,24 @@ def test_same_losses_and_gradients(seed, generic):
             assert q.grad is None, k
         else:
             torch.testing.assert_close(p.grad, q.grad, msg=k)
+
+
+def test_gaussian_actor_is_the_iql_authors_policy():
+    """Normal(tanh(mean), exp(clip(log_std))): bounded log-likelihood at the action bound, mean as the
+    deterministic action."""
+    from tensordict.nn import InteractionType, set_interaction_type
+
+    actor = make_actor(["observation"], OBS, ACT, [16, 16], distribution="gaussian")
+    td = TensorDict({"observation": torch.randn(5, OBS)}, [5])
+    dist = actor.get_dist(td)
+    assert isinstance(dist.base_dist, torch.distributions.Normal)
+    assert dist.mean.abs().max() < 1 and torch.allclose(dist.stddev, torch.ones_like(dist.stddev))
+    assert torch.isfinite(dist.log_prob(torch.ones(5, ACT))).all()
+    with set_interaction_type(InteractionType.DETERMINISTIC):
+        torch.testing.assert_close(actor(td.clone())["action"], dist.mean)
+    with torch.no_grad():
+        actor.module[0].module.seq[1].log_std.fill_(-9.0)  # clipped at -5
+    assert torch.allclose(actor.get_dist(td).stddev, torch.full((5, ACT), torch.exp(torch.tensor(-5.0)).item()))
 
 
 def test_td_estimator_other_than_td0_falls_back_to_iqlloss():

@@ -109,6 +109,9 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("trainer.steps=0", "trainer.steps must be positive"),
         ("network.hidden=[0]", "network.hidden"),
         ("data.source=", "data.source is required"),
+        ("optim.actor_schedule=linear", "optim.actor_schedule must be one of"),
+        ("eval.reward=raw", "eval.reward must be one of"),
+        ("eval={env: FrankaKitchen-v1, reward: d4rl}", "eval.reward=d4rl needs a dense v1 env"),
     ],
 )
 def test_recipe_validation(tmp_path, dataset, override, message):
@@ -135,6 +138,31 @@ def test_cli_train_and_multirun(tmp_path, dataset, capsys):
     assert "unknown key" in capsys.readouterr().err
 
 
+def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_path, dataset, capsys):
+    path = make_recipe(tmp_path, dataset)
+    grid = ["train", str(path), "trainer.steps=10", "trainer.checkpoint_every=5", "seed=0,1,2", "--multirun"]
+    runs = tmp_path / "runs"
+    assert main(["train", str(path), "trainer.steps=10", "seed=0", "--no-progress"]) == 0  # finished
+    assert main(["train", str(path), "trainer.steps=5", "seed=1", "--no-progress"]) == 0  # a checkpoint at 5 of 10
+    (runs / "tiny-seed2" / "logs").mkdir(parents=True)  # killed before its first checkpoint
+    (runs / "tiny-seed2" / "recipe.yaml").write_text("name: tiny\n")
+    finished = (runs / "tiny-seed0" / "checkpoint.pt").stat().st_mtime_ns
+    assert main(grid) == 0
+    assert "1 of 3 runs already finished" in capsys.readouterr().err
+    assert (runs / "tiny-seed0" / "checkpoint.pt").stat().st_mtime_ns == finished
+    for seed in (1, 2):
+        assert torch.load(runs / f"tiny-seed{seed}" / "checkpoint.pt", weights_only=True)["step"] == 10
+    steps = [int(line.split(",")[0]) for line in (runs / "tiny-seed1" / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
+    assert steps == [5, 10]  # the first run logged its last step, the resumed one continued
+    assert main(grid) == 0
+    assert "3 of 3 runs already finished" in capsys.readouterr().err
+    (runs / "tiny-seed2" / "checkpoint.pt").unlink()
+    (runs / "tiny-seed2" / "notes.txt").write_text("mine")
+    assert main(grid) == 2
+    assert "holds ['notes.txt']" in capsys.readouterr().err
+    assert (runs / "tiny-seed2" / "notes.txt").read_text() == "mine"
+
+
 def test_online_evaluation_in_mujoco(tmp_path, dataset):
     recipe = load_recipe(
         make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 20, every: 10, episodes: 2, score: door}\n"),
@@ -144,9 +172,37 @@ def test_online_evaluation_in_mujoco(tmp_path, dataset):
     rows = list(csv.DictReader((run_dir / "eval.csv").open()))
     assert [int(r["step"]) for r in rows] == [10, 20]
     for r in rows:
+        assert r["reward"] == "d4rl"  # AdroitHandDoor-v1's dense reward, with D4RL's sign
         assert int(r["episodes"]) == 2
         assert 0 <= float(r["events_mean"]) <= 4
         assert np.isfinite(float(r["score"]))
+
+
+def test_cosine_actor_schedule(tmp_path, dataset):
+    """The actor's lr falls from its recipe value to ~0 over the run; the critics' stays."""
+    from rm_torchrl.train.losses import ActorSchedule, build_method
+
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["optim.actor_schedule=cosine", "optim.lr_actor=1.0e-3",
+                                                          "trainer.steps=40", "trainer.checkpoint_every=20"])
+    run_dir = train(recipe, progress=False)
+    groups = torch.load(run_dir / "checkpoint.pt", weights_only=False)["optimizers"][0]["param_groups"]
+    actor_lr, *critic_lrs = [g["lr"] for g in groups]
+    assert actor_lr == pytest.approx(1e-3 * 0.5 * (1 + np.cos(np.pi * 39 / 40)))
+    assert critic_lrs == [3e-4, 3e-4]
+
+    for name in ("iql", "bc", "cql", "bcq"):  # every method's actor, and only it, is annealed
+        method = build_method(load_recipe(make_recipe(tmp_path, dataset), [f"method.name={name}"]), ["observation"], 5, 2)
+        schedule = ActorSchedule(method, total=10)
+        groups = [g for opt in method.optimizers for g in opt.param_groups]
+        others = [(g, g["lr"]) for g in groups if all(g is not s for s in schedule.groups)]
+        assert len(schedule.groups) == 1 and (others or name == "bc"), name
+        lrs = []
+        for step in range(1, 13):
+            schedule(step)
+            lrs.append(schedule.groups[0]["lr"] / schedule.base[0])
+            assert all(g["lr"] == lr for g, lr in others)
+        assert lrs[0] == 1.0 and lrs[5] == pytest.approx(0.5) and lrs[10] == lrs[11] == pytest.approx(0.0, abs=1e-12)
+        assert all(a >= b for a, b in zip(lrs, lrs[1:]))
 
 
 def test_demo_main_job_on_built_data(tmp_path, capsys):
@@ -163,11 +219,14 @@ def test_demo_main_job_on_built_data(tmp_path, capsys):
     assert (tmp_path / "demo" / "report" / "learning_curves.png").stat().st_size > 0
 
 
-def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkeypatch):
-    """A run that dies between checkpoints resumes from the last one; rows logged after it are dropped."""
+@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkeypatch, schedule):
+    """A run that dies between checkpoints resumes from the last one; rows logged after it are dropped;
+    the actor's lr schedule continues where it was."""
     import rm_torchrl.train.trainer as trainer_module
 
-    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight"])
+    sched = f"optim.actor_schedule={schedule}"
+    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight", sched])
     train(straight, progress=False)
 
     real_step, calls = trainer_module.gradient_step, {"n": 0}
@@ -179,12 +238,12 @@ def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkey
         return real_step(*args)
 
     monkeypatch.setattr(trainer_module, "gradient_step", dying_step)
-    killed = load_recipe(make_recipe(tmp_path, dataset), ["name=killed"])
+    killed = load_recipe(make_recipe(tmp_path, dataset), ["name=killed", sched])
     with pytest.raises(SystemExit):
         train(killed, progress=False)
     assert torch.load(killed.run_dir / "checkpoint.pt", weights_only=False)["step"] == 100
     monkeypatch.setattr(trainer_module, "gradient_step", real_step)
-    run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["name=killed", "resume=true"]), progress=False)
+    run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["name=killed", "resume=true", sched]), progress=False)
     steps = [int(line.split(",")[0]) for line in (run_dir / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
     assert steps == list(range(20, 201, 20))
     a = torch.load(straight.run_dir / "checkpoint.pt", weights_only=False)["loss"]

@@ -32,11 +32,52 @@ def run(args) -> int:
         print(f"finished {recipe.trainer.steps} steps: {run_dir}")
         return 0
     grid = expand_grid(args.overrides)
-    for combo in grid:
-        load_recipe(args.recipe, combo)  # refuse a bad grid before starting anything
-    run_many([[args.recipe, *combo] for combo in grid], args.jobs)
+    recipes = [load_recipe(args.recipe, combo) for combo in grid]  # refuse a bad grid before starting anything
+    todo, done = [], 0
+    for recipe, combo in zip(recipes, grid):
+        state = run_state(recipe)
+        if state == "finished":
+            done += 1
+        else:
+            todo.append([args.recipe, *combo, *(["resume=true"] if state == "resumable" else [])])
+    if done:
+        tqdm.write(f"{done} of {len(grid)} runs already finished: skipped", file=sys.stderr)
+    run_many(todo, args.jobs)
     print(f"finished {len(grid)} runs")
     return 0
+
+
+#: What the trainer writes into a run directory before its first checkpoint.
+_TRAINER_FILES = ("recipe.yaml", "eval.csv", "refine_report.json", "logs")
+
+
+def run_state(recipe) -> str:
+    """``new``, ``resumable`` (a checkpoint short of ``trainer.steps``) or ``finished``, for a multirun.
+
+    A run killed before its first checkpoint left only the trainer's own files: they are removed
+    so that it starts again; anything else in its directory is refused rather than deleted.
+    """
+    import shutil
+
+    import torch
+
+    run_dir = recipe.run_dir
+    ckpt = run_dir / "checkpoint.pt"
+    if ckpt.is_file():
+        try:
+            step = int(torch.load(ckpt, map_location="cpu", weights_only=True)["step"])
+        except Exception as err:  # a truncated or foreign file
+            raise RMError(f"{ckpt} cannot be read ({type(err).__name__}); move it away to restart that run") from None
+        return "finished" if step >= recipe.trainer.steps else "resumable"
+    if not run_dir.is_dir():
+        return "new"
+    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in _TRAINER_FILES)
+    if foreign:
+        raise RMError(f"run directory {run_dir} has no checkpoint and holds {foreign}; move it away to start that run")
+    for name in _TRAINER_FILES:
+        path = run_dir / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+    return "new"
 
 
 def run_many(runs: list[list[str]], jobs: int) -> None:

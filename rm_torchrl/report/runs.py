@@ -41,7 +41,11 @@ from rm_torchrl.errors import RMError, read_yaml
 EVAL_FILE = "eval.csv"
 RECIPE_FILE = "recipe.yaml"
 REFINE_FILE = "refine_report.json"
-EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes")
+EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
+#: The one text column of eval.csv: the reward convention of the returns (``d4rl`` or ``env``).
+REWARD_COLUMN = "reward"
+#: What a run written before eval.csv had a reward column was evaluated with: the env's own reward.
+LEGACY_REWARD = "env"
 #: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
 METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
 OURS = "Ours"
@@ -144,6 +148,12 @@ class Run:
         return self.evals[self.metric]
 
     @property
+    def reward(self) -> str:
+        """The reward convention of the returns (``d4rl`` or ``env``), from the last evaluation."""
+        column = self.evals.get(REWARD_COLUMN)
+        return str(column[-1]) if column is not None and len(column) else LEGACY_REWARD
+
+    @property
     def final_step(self) -> int:
         return int(self.steps[-1])
 
@@ -227,7 +237,10 @@ def read_recipe(run_dir: Path) -> dict:
 
 
 def read_eval_csv(path: Path) -> dict[str, np.ndarray]:
-    """eval.csv as column -> float array, sorted by step (a repeated step keeps its last row)."""
+    """eval.csv as column -> array, sorted by step (a repeated step keeps its last row).
+
+    Every column is a float array except ``reward``, the reward convention, kept as text.
+    """
     try:
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
@@ -243,21 +256,26 @@ def read_eval_csv(path: Path) -> dict[str, np.ndarray]:
         raise RMError(f"{path}: unexpected header {','.join(header)!r}; expected {','.join(EVAL_COLUMNS)}")
     if len(set(header)) != len(header):
         raise RMError(f"{path}: repeated column in header {','.join(header)!r}")
-    by_step: dict[float, list[float]] = {}
+    numeric = [i for i, name in enumerate(header) if name != REWARD_COLUMN]
+    text = header.index(REWARD_COLUMN) if REWARD_COLUMN in header else None
+    by_step: dict[float, tuple[list[float], str]] = {}
     for line, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise RMError(f"{path}, line {line}: {len(row)} fields, the header has {len(header)}")
         try:
-            values = [float(cell) for cell in row]
+            values = [float(row[i]) for i in numeric]
         except ValueError:
             raise RMError(f"{path}, line {line}: non-numeric value in {','.join(row)!r}") from None
-        step = values[header.index("step")]
+        step = values[numeric.index(header.index("step"))]
         if not math.isfinite(step) or step < 0:
             raise RMError(f"{path}, line {line}: step must be a non-negative number, got {row[header.index('step')]!r}")
-        by_step[step] = values
+        by_step[step] = (values, row[text].strip() if text is not None else "")
     steps = sorted(by_step)
-    table = np.array([by_step[s] for s in steps], dtype=np.float64).reshape(len(steps), len(header))
-    return {name: table[:, i] for i, name in enumerate(header)}
+    table = np.array([by_step[s][0] for s in steps], dtype=np.float64).reshape(len(steps), len(numeric))
+    out = {header[i]: table[:, j] for j, i in enumerate(numeric)}
+    if text is not None:
+        out[REWARD_COLUMN] = np.array([by_step[s][1] for s in steps], dtype=str)
+    return out
 
 
 def read_scalars(run_dir: Path) -> dict[str, np.ndarray]:
@@ -431,7 +449,7 @@ def group_runs(runs: Iterable[Run]) -> list[Group]:
 
 def _metric_key(run: Run) -> str:
     score = run.recipe.get("eval", {}).get("score")
-    return f"score ({score})" if score else "return_mean"
+    return (f"score ({score})" if score else "return_mean") + f" of {run.reward} rewards"
 
 
 def datasets(groups: Iterable[Group]) -> list[str]:
@@ -451,6 +469,7 @@ def tidy(runs: Iterable[Run]) -> list[dict]:
             row = {"run": str(run.path), "dataset": run.dataset, "method": run.method, "seed": run.seed,
                    "metric": run.metric, "value": float(run.values[i])}
             for column, values in run.evals.items():
-                row[column] = int(values[i]) if column in ("step", "episodes") else float(values[i])
+                row[column] = (int(values[i]) if column in ("step", "episodes")
+                               else str(values[i]) if column == REWARD_COLUMN else float(values[i]))
             rows.append(row)
     return rows

@@ -146,6 +146,10 @@ def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
         what.append(f"D4RL-normalised `score` ({_join(scored)})")
     if returned:
         what.append(f"mean episode return `return_mean` ({_join(returned)}, where eval.score is unset)")
+    conventions = sorted({r.reward for r in runs})
+    what[-1] += f", from {' and '.join(conventions)} rewards" + (
+        " (D4RL's reward function; for Adroit v1 envs, their dense reward with D4RL's sign of the distance term)"
+        if "d4rl" in conventions else " (the evaluation env's own reward)")
     refined_baselines = any(g.method.endswith("(refined)") for g in groups)
     lines.append(f"Cell: mean ± std (sample std over seeds) of the final evaluation's {' and '.join(what)}; "
                  "the best mean of each dataset is in **bold**. "

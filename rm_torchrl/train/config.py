@@ -50,6 +50,7 @@ class MethodConfig:
 @dataclass
 class NetworkConfig:
     hidden: list = field(default_factory=lambda: [256, 256])
+    actor: str = "tanh_normal"  # tanh_normal | gaussian (tanh mean, state-independent std: the IQL authors')
 
 
 @dataclass
@@ -61,6 +62,7 @@ class OptimConfig:
     weight_decay_pi: float = 1e-4  # lambda_pi of eq. 8, on the policy
     decay: str = "l2"  # l2: the paper's penalty lambda*||w||^2 (Adam weight_decay = 2 lambda); decoupled: AdamW
     fused: bool = True
+    actor_schedule: str = "constant"  # constant | cosine: the actor's lr annealed to 0 over trainer.steps (IQL authors, CORL)
 
 
 @dataclass
@@ -85,6 +87,7 @@ class EvalConfig:
     every: int = 2000
     episodes: int = 10
     score: str = ""  # door | relocate | kitchen: the D4RL normalisation of the return
+    reward: str = "auto"  # auto: D4RL's reward where the v1 env's differs (door, relocate), else the env's | d4rl | env
 
 
 @dataclass
@@ -121,6 +124,9 @@ _CHOICES = {
     "rm.encoding": ("one_hot", "slots"),
     "method.name": METHODS,
     "optim.decay": ("l2", "decoupled"),
+    "optim.actor_schedule": ("constant", "cosine"),
+    "network.actor": ("tanh_normal", "gaussian"),
+    "eval.reward": ("auto", "d4rl", "env"),
     "eval.observation": ("flat", "kitchen-v0"),
     "eval.score": ("", "door", "relocate", "kitchen"),
     "logger.backend": ("csv", "tensorboard", "wandb"),
@@ -240,3 +246,9 @@ def validate(recipe: Recipe) -> None:
     for key in ("weight_decay_q", "weight_decay_pi"):
         if getattr(recipe.optim, key) < 0:
             raise RMError(f"recipe: optim.{key} must be >= 0")
+    if recipe.eval.env and recipe.eval.reward == "d4rl":
+        from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
+
+        if d4rl_reward_task(recipe.eval.env, recipe.eval.env_kwargs) is None:
+            raise RMError(f"recipe: eval.reward=d4rl needs a dense v1 env with a known correction "
+                          f"({sorted(V1_ENVS)}), got eval.env={recipe.eval.env!r}; use auto or env")

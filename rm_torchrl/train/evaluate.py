@@ -30,12 +30,20 @@ def normalized_score(kind: str, episode_return: float) -> float:
     return 100.0 * (episode_return - low) / (high - low)
 
 
+def reward_convention(recipe: Recipe) -> tuple[str, str | None]:
+    """("d4rl" | "env", the :class:`D4RLReward` task or None) for the recipe's evaluation env."""
+    from rm_torchrl.envs import d4rl_reward_task
+
+    task = None if recipe.eval.reward == "env" else d4rl_reward_task(recipe.eval.env, recipe.eval.env_kwargs)
+    return ("d4rl" if task else "env"), task
+
+
 def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
     import gymnasium as gym
     import gymnasium_robotics
     from torchrl.envs import GymEnv
 
-    from rm_torchrl.envs import RMEnvTransform
+    from rm_torchrl.envs import D4RLReward, RMEnvTransform
 
     gym.register_envs(gymnasium_robotics)
     try:
@@ -48,6 +56,9 @@ def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
 
         transforms.append(KitchenV0Observation())
     transforms.append(DoubleToFloat())
+    task = reward_convention(recipe)[1]
+    if task:
+        transforms.append(D4RLReward(task))  # reads the raw observation: before ObservationNorm
     if recipe.data.events:
         encoding = recipe.rm.encoding if ENCODING_KEY in data.obs_keys else None
         transforms.append(RMEnvTransform(recipe.data.events, encoding=encoding, encoding_key=ENCODING_KEY))
@@ -69,6 +80,7 @@ class Evaluator:
         self.recipe, self.policy = recipe, policy
         self.env = make_eval_env(recipe, data)
         self.track_rm = bool(recipe.data.events)
+        self.reward = reward_convention(recipe)[0]
 
     def run(self) -> dict:
         self.env.set_seed(self.recipe.seed)
@@ -93,4 +105,5 @@ class Evaluator:
             "success_rate": sum(successes) / len(returns) if successes else float("nan"),
             "events_mean": sum(events) / len(returns) if events else float("nan"),
             "episodes": len(returns),
+            "reward": self.reward,
         }

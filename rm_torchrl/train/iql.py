@@ -9,7 +9,7 @@ from torchrl.objectives import IQLLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rm_torchrl.train.networks import ConcatMLP, _Splat
+from rm_torchrl.train.networks import ConcatMLP, GaussianHead, _Splat
 
 
 class SharedForwardIQLLoss(IQLLoss):
@@ -40,7 +40,8 @@ class SharedForwardIQLLoss(IQLLoss):
         loss_value = self._reduce_loss(self.loss_value_diff(min_q - value, self.expectile), tensordict=tensordict)
 
         log_prob = self._log_prob(tensordict)
-        weight = torch.exp((min_q - value.detach()) * self.temperature).clamp_max(100)
+        advantage = min_q - value.detach()
+        weight = torch.exp(advantage * self.temperature).clamp_max(100)
         loss_actor = self._reduce_loss(-(weight * log_prob), tensordict=tensordict)
 
         if self._plain_td0(tensordict):
@@ -52,6 +53,10 @@ class SharedForwardIQLLoss(IQLLoss):
             "loss_qvalue": loss_qvalue,
             "loss_value": loss_value,
             "entropy": -log_prob.detach().mean(),
+            # diagnostics: where the advantage weights sit, and how much of the batch they saturate
+            "advantage_mean": advantage.mean(),
+            "weight_clamped": (weight >= 100).float().mean(),
+            "value_mean": value.detach().mean(),
         })
 
     def _q(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
@@ -77,9 +82,11 @@ class SharedForwardIQLLoss(IQLLoss):
         if self._fast:
             td_module, dist_module = self.actor_network.module
             splat = td_module.module
-            params = self.actor_network_params.get(("module", "0", "module", "seq", "0"))
-            out = splat.seq[0].call_with(params, *[tensordict.get(k) for k in td_module.in_keys])
-            loc, scale = splat.seq[1](out)
+            params = self.actor_network_params.get(("module", "0", "module", "seq"))
+            out = splat.seq[0].call_with(params.get("0"), *[tensordict.get(k) for k in td_module.in_keys])
+            head = splat.seq[1]
+            loc, scale = (head(out) if isinstance(head, NormalParamExtractor)
+                          else head.call_with(params.get(("1", "log_std")), out))
             return dist_module.distribution_class(loc, scale, **dist_module.distribution_kwargs).log_prob(action)
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             dist = self.actor_network.get_dist(tensordict)
@@ -109,9 +116,9 @@ def _is_concat_operator(network) -> bool:
 
 
 def _is_concat_actor(actor) -> bool:
-    """A ``make_actor`` policy: ``ConcatMLP`` then ``NormalParamExtractor``, then the distribution."""
+    """A ``make_actor`` policy: ``ConcatMLP`` then ``NormalParamExtractor`` or ``GaussianHead``, then the distribution."""
     if type(actor) is not ProbabilisticActor or len(actor.module) != 2:
         return False
     splat = getattr(actor.module[0], "module", None)
     return (isinstance(splat, _Splat) and len(splat.seq) == 2 and isinstance(splat.seq[0], ConcatMLP)
-            and isinstance(splat.seq[1], NormalParamExtractor))
+            and isinstance(splat.seq[1], (NormalParamExtractor, GaussianHead)))

@@ -1,6 +1,7 @@
 """The loss of each method, its optimisers (with the paper's weight decay) and its eval policy."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -39,9 +40,40 @@ class Method:
     policy: TensorDictModule  # acts from the observation keys at evaluation
     target_updater: SoftUpdate | None
     compiled: object = None  # torch.compile(loss), used in its place by the trainer when set
+    schedule: "ActorSchedule | None" = None  # called with each update's step number before it
 
     def compute_loss(self, batch: TensorDictBase) -> TensorDictBase:
         return (self.loss if self.compiled is None else self.compiled)(batch)
+
+
+class ActorSchedule:
+    """Cosine annealing of the actor's learning rate from its recipe value to 0 over ``total`` updates.
+
+    The IQL authors' code (``optax.cosine_decay_schedule`` on the actor) and CORL's IQL do this;
+    the critics keep a constant rate. The rate is a function of the step alone, so a resumed run
+    continues the schedule exactly. Update ``step`` (1-based) uses
+    ``lr * 0.5 * (1 + cos(pi * (step - 1) / total))``.
+    """
+
+    def __init__(self, method: "Method", total: int):
+        actor = {id(p) for p in _params(method.loss.actor_network_params)}
+        # (optimizer, group index), not the group dicts: Optimizer.load_state_dict replaces those on resume
+        self.slots = [(opt, i) for opt in method.optimizers for i, g in enumerate(opt.param_groups)
+                      if any(id(p) in actor for p in g["params"])]
+        self.base = [opt.param_groups[i]["lr"] for opt, i in self.slots]
+        self.total = total
+
+    @property
+    def groups(self) -> list[dict]:
+        return [opt.param_groups[i] for opt, i in self.slots]
+
+    def factor(self, step: int) -> float:
+        return 0.5 * (1.0 + math.cos(math.pi * min(step - 1, self.total) / self.total))
+
+    def __call__(self, step: int) -> None:
+        f = self.factor(step)
+        for group, base in zip(self.groups, self.base):
+            group["lr"] = base * f
 
 
 def _adam(groups: list[tuple[object, float, float]], recipe: Recipe) -> torch.optim.Optimizer:
@@ -85,9 +117,17 @@ def compile_method(method: Method) -> Method:
 
 
 def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
+    """The recipe's method, with the actor's learning-rate schedule of ``optim.actor_schedule``."""
+    method = _build(recipe, obs_keys, obs_dim, action_dim)
+    if recipe.optim.actor_schedule == "cosine":
+        method.schedule = ActorSchedule(method, recipe.trainer.steps)
+    return method
+
+
+def _build(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
     m, o, hidden = recipe.method, recipe.optim, recipe.network.hidden
     dropout = m.actor_dropout if m.name == "iql" else 0.0
-    actor = make_actor(obs_keys, obs_dim, action_dim, hidden, dropout)
+    actor = make_actor(obs_keys, obs_dim, action_dim, hidden, dropout, distribution=recipe.network.actor)
     if m.name == "bc":
         loss = BCLoss(actor)
         opt = [_adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi)], recipe)]

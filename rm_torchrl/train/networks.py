@@ -9,6 +9,10 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torch.nn import functional as F
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules.distributions import IndependentNormal
+
+#: What the actor's distribution is (``network.actor``).
+ACTORS = ("tanh_normal", "gaussian")
 
 
 class ConcatMLP(nn.Module):
@@ -46,15 +50,48 @@ class ConcatMLP(nn.Module):
         return x
 
 
+class GaussianHead(nn.Module):
+    """(tanh(mean), exp(log_std)): the IQL authors' policy head, with one learned log-std per action
+    dimension (not state-dependent), clipped to ``[log_std_min, log_std_max]``.
+
+    Its Gaussian log-likelihood of a dataset action at the bound (+-1, common in human
+    demonstrations) is bounded, unlike a tanh-squashed Gaussian's, whose log-likelihood there grows
+    without limit as the mean runs off and the scale shrinks.
+    """
+
+    def __init__(self, action_dim: int, log_std_min: float = -5.0, log_std_max: float = 2.0):
+        super().__init__()
+        self.log_std = nn.Parameter(torch.zeros(action_dim))
+        self.log_std_min, self.log_std_max = log_std_min, log_std_max
+
+    def forward(self, mean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.call_with(self.log_std, mean)
+
+    def call_with(self, log_std: torch.Tensor, mean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward`` with ``log_std`` given (the loss's own copy of the parameter)."""
+        scale = log_std.clamp(self.log_std_min, self.log_std_max).exp().expand_as(mean)
+        return torch.tanh(mean), scale
+
+
 def make_actor(obs_keys: list, obs_dim: int, action_dim: int, hidden: Sequence[int], dropout: float = 0.0,
-               low: float = -1.0, high: float = 1.0) -> ProbabilisticActor:
-    """A tanh-Gaussian policy pi(a | s, u); its deterministic mode is the tanh of the mean."""
-    net = nn.Sequential(ConcatMLP(obs_dim, 2 * action_dim, hidden, dropout), NormalParamExtractor())
+               low: float = -1.0, high: float = 1.0, distribution: str = "tanh_normal") -> ProbabilisticActor:
+    """A Gaussian policy pi(a | s, u); its deterministic action is the tanh of the network's mean.
+
+    ``tanh_normal``: a tanh-squashed Gaussian with a state-dependent scale (SAC-style; CQL's).
+    ``gaussian``: a Gaussian around tanh(mean) with a learned state-independent scale
+    (:class:`GaussianHead`), as the IQL authors and CORL's IQL define the policy.
+    """
+    if distribution == "gaussian":
+        net = nn.Sequential(ConcatMLP(obs_dim, action_dim, hidden, dropout), GaussianHead(action_dim))
+        dist_class, dist_kwargs = IndependentNormal, {"tanh_loc": False}
+    elif distribution == "tanh_normal":
+        net = nn.Sequential(ConcatMLP(obs_dim, 2 * action_dim, hidden, dropout), NormalParamExtractor())
+        dist_class, dist_kwargs = TanhNormal, {"low": low, "high": high}
+    else:
+        raise ValueError(f"actor distribution must be one of {ACTORS}, got {distribution!r}")
     module = TensorDictModule(_Splat(net), in_keys=list(obs_keys), out_keys=["loc", "scale"])
-    return ProbabilisticActor(
-        module, in_keys=["loc", "scale"], distribution_class=TanhNormal,
-        distribution_kwargs={"low": low, "high": high}, return_log_prob=False,
-    )
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], distribution_class=dist_class,
+                              distribution_kwargs=dist_kwargs, return_log_prob=False)
 
 
 def make_qvalue(obs_keys: list, obs_dim: int, action_dim: int, hidden: Sequence[int]) -> ValueOperator:

@@ -25,7 +25,8 @@ from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
 from rm_torchrl.train.losses import LOSS_TERMS, build_method, compile_method
 
-EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes")
+#: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
+EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
 
 
 def _make_logger(recipe: Recipe, run_dir: Path):
@@ -148,8 +149,8 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     def evaluate(step: int) -> dict:
         result = evaluator.run()
         with eval_csv.open("a", newline="") as f:
-            csv.writer(f).writerow([step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:])])
-        for key in EVAL_COLUMNS[1:]:
+            csv.writer(f).writerow([step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:-1]), result["reward"]])
+        for key in EVAL_COLUMNS[1:-1]:
             logger.log_scalar(f"eval_{key}", result[key], step=step)
         return result
 
@@ -163,12 +164,16 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     try:
         for step in range(start + 1, recipe.trainer.steps + 1):
             update = _first_step if step == start + 1 else gradient_step
+            if method.schedule is not None:
+                method.schedule(step)
             losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
-                for t in terms:
-                    value = float(losses.get(t).detach())
-                    logger.log_scalar(t, value, step=step)
-                    shown[t.removeprefix("loss_")] = f"{value:.3g}"
+                for key, entry in losses.items():
+                    if entry.numel() == 1:  # the loss terms and the loss's scalar diagnostics
+                        value = float(entry.detach())
+                        logger.log_scalar(key, value, step=step)
+                        if key in terms:
+                            shown[key.removeprefix("loss_")] = f"{value:.3g}"
                 train_seconds = time.perf_counter() - started - eval_seconds
                 logger.log_scalar("updates_per_second", (step - start) / train_seconds, step=step)
             if evaluator is not None and (step % recipe.eval.every == 0 or step == recipe.trainer.steps):
