@@ -178,6 +178,17 @@ def test_online_evaluation_in_mujoco(tmp_path, dataset):
         assert np.isfinite(float(r["score"]))
 
 
+@pytest.mark.parametrize("flush", [True, False])
+def test_subnormals_are_flushed_unless_told_not_to(tmp_path, dataset, flush):
+    try:
+        train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=2", f"trainer.flush_denormal={str(flush).lower()}"]),
+              progress=False)
+        tiny = torch.tensor([1e-39]) * torch.tensor([1.0])  # a float32 subnormal
+        assert (tiny.item() == 0.0) == flush
+    finally:
+        torch.set_flush_denormal(False)
+
+
 def test_cosine_actor_schedule(tmp_path, dataset):
     """The actor's lr falls from its recipe value to ~0 over the run; the critics' stays."""
     from rm_torchrl.train.losses import ActorSchedule, build_method

@@ -32,19 +32,27 @@ def run(args) -> int:
         print(f"finished {recipe.trainer.steps} steps: {run_dir}")
         return 0
     grid = expand_grid(args.overrides)
-    recipes = [load_recipe(args.recipe, combo) for combo in grid]  # refuse a bad grid before starting anything
+    run_grid([(args.recipe, combo) for combo in grid], args.jobs)
+    print(f"finished {len(grid)} runs")
+    return 0
+
+
+def run_grid(runs: list[tuple[str, list[str]]], jobs: int) -> None:
+    """``(recipe path, overrides)`` runs, resumably: finished runs are skipped, killed ones resumed.
+
+    Every recipe is loaded first, so a bad grid is refused before anything starts.
+    """
+    recipes = [load_recipe(path, overrides) for path, overrides in runs]
     todo, done = [], 0
-    for recipe, combo in zip(recipes, grid):
+    for recipe, (path, overrides) in zip(recipes, runs):
         state = run_state(recipe)
         if state == "finished":
             done += 1
         else:
-            todo.append([args.recipe, *combo, *(["resume=true"] if state == "resumable" else [])])
+            todo.append([path, *overrides, *(["resume=true"] if state == "resumable" else [])])
     if done:
-        tqdm.write(f"{done} of {len(grid)} runs already finished: skipped", file=sys.stderr)
-    run_many(todo, args.jobs)
-    print(f"finished {len(grid)} runs")
-    return 0
+        tqdm.write(f"{done} of {len(runs)} runs already finished: skipped", file=sys.stderr)
+    run_many(todo, jobs)
 
 
 #: What the trainer writes into a run directory before its first checkpoint.

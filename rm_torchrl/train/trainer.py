@@ -99,6 +99,10 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     if recipe.trainer.threads:
         torch.set_num_threads(recipe.trainer.threads)
+    # Weights and optimiser moments drift into subnormal floats within a few thousand updates
+    # (measured on door-human-v0: 3.6 s per 250 updates at the start, 16 s by step 3000); CPU
+    # arithmetic on subnormals is many times slower, so they are flushed to zero (process-wide).
+    torch.set_flush_denormal(recipe.trainer.flush_denormal)
     torch.manual_seed(recipe.seed)
     random.seed(recipe.seed)
 

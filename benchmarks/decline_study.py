@@ -1,0 +1,144 @@
+"""Weight-decay study on door-human-v0: does ours still decline, and which lambda should the recipes use?
+
+Trains ours (``recipes/door-human-v0-ours.yaml``: IQL on the refined data with the RM state, the IQL
+authors' Gaussian actor and cosine actor schedule) with lambda_Q = lambda_pi = lambda for every
+lambda in ``--lambdas`` and every seed in ``--seeds``, then writes the study's table, curves and
+summary. Resumable: run it again and finished runs are skipped, killed ones resumed from their
+checkpoint. The choice rule is fixed before any run: the lambda with the highest mean D4RL score
+over the last five evaluations (steps 42k-50k of 50k), averaged over seeds.
+
+    python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from rm_torchrl.cli.train import run_grid  # noqa: E402
+from rm_torchrl.report.runs import read_eval_csv, read_scalars  # noqa: E402
+
+RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
+LAST = 5  # evaluations the choice rule averages
+
+
+def arm_name(lam: str) -> str:
+    return f"door-human-v0-ours-wd{lam}"
+
+
+def grid(args) -> list[tuple[str, list[str]]]:
+    runs = []
+    for seed in args.seeds:  # seed-major: a partial study covers every lambda
+        for lam in args.lambdas:
+            runs.append((str(RECIPE), [f"name={arm_name(lam)}", f"seed={seed}", f"out={args.out}",
+                                       f"optim.weight_decay_q={float(lam)!r}", f"optim.weight_decay_pi={float(lam)!r}",
+                                       f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
+                                       *args.override]))
+    return runs
+
+
+def summarise(args) -> dict:
+    """Per lambda: the curves over seeds and the figures of the table (finished runs only)."""
+    arms = {}
+    for lam in args.lambdas:
+        seeds = {}
+        for seed in args.seeds:
+            run_dir = Path(args.out) / f"{arm_name(lam)}-seed{seed}"
+            if not (run_dir / "eval.csv").is_file():
+                continue
+            evals = read_eval_csv(run_dir / "eval.csv")
+            if len(evals["step"]) == 0 or int(evals["step"][-1]) < args.steps:
+                continue
+            seeds[seed] = (run_dir, evals, read_scalars(run_dir))
+        if seeds:
+            arms[lam] = seeds
+    return arms
+
+
+def write_results(args, arms: dict) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = Path(args.results)
+    results.mkdir(parents=True, exist_ok=True)
+    rows, summary = [], []
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    for lam, seeds in arms.items():
+        steps = next(iter(seeds.values()))[1]["step"]
+        scores = np.stack([e["score"] for _, e, _ in seeds.values()])
+        success = np.stack([e["success_rate"] for _, e, _ in seeds.values()])
+        events = np.stack([e["events_mean"] for _, e, _ in seeds.values()])
+        sem = np.stack([e["return_std"] for _, e, _ in seeds.values()]) / np.sqrt(
+            np.stack([e["episodes"] for _, e, _ in seeds.values()]))
+        mean, std = scores.mean(0), scores.std(0, ddof=1) if len(scores) > 1 else np.zeros(len(steps))
+        line, = axes[0].plot(steps, mean, label=f"λ={lam}")
+        axes[0].fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
+        for key, ax in (("weight_clamped", axes[1]), ("entropy", axes[2])):
+            curves = [s[key] for _, _, s in seeds.values() if key in s]
+            if curves:
+                n = min(len(c) for c in curves)
+                ax.plot(curves[0][:n, 0], np.mean([c[:n, 1] for c in curves], 0), color=line.get_color())
+        last = scores[:, -LAST:].mean(1)
+        peak = scores.max(1)
+        rows.append((lam, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -LAST:].mean(1),
+                     events[:, -LAST:].mean(1), float(np.median(sem)) * 100 / (2880.5693 + 56.5128)))
+        for seed, (run_dir, evals, _) in seeds.items():
+            shutil.copyfile(run_dir / "eval.csv", results / f"eval-wd{lam}-seed{seed}.csv")
+            shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-wd{lam}-seed{seed}.yaml")
+            summary.append({"lambda": float(lam), "seed": seed, "steps": int(evals["step"][-1]),
+                            "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
+                            "last5_score": float(evals["score"][-LAST:].mean()), "mean_score": float(evals["score"].mean()),
+                            "peak_score": float(evals["score"].max()), "peak_step": int(evals["step"][np.argmax(evals["score"])]),
+                            "final_return": float(evals["return_mean"][-1]), "reward": str(evals.get("reward", ["env"])[-1])})
+    axes[0].set(xlabel="gradient step", ylabel="D4RL score (mean ± std over seeds)", title="door-human-v0, ours")
+    axes[0].legend()
+    axes[1].set(xlabel="gradient step", ylabel="share of advantage weights at the clamp (100)", title="actor weights")
+    axes[2].set(xlabel="gradient step", ylabel="-log pi(a|s) on the batch", title="actor negative log-likelihood")
+    fig.tight_layout()
+    fig.savefig(results / "curves.png", dpi=110)
+
+    def cell(values):
+        return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
+
+    best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
+    lines = ["| λ (λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
+             "success (last 5) | events of 4 (last 5) |", "|---|---|---|---|---|---|---|---|"]
+    for lam, n, final, last, mean, peak, succ, ev, _ in rows:
+        mark = " **(chosen)**" if lam == best else ""
+        lines.append(f"| {lam}{mark} | {n} | {cell(final)} | {cell(last)} | {cell(mean)} | {cell(peak)} | "
+                     f"{succ.mean():.0%} | {ev.mean():.2f} |")
+    noise = np.median([r[8] for r in rows]) if rows else float("nan")
+    (results / "table.md").write_text("\n".join(lines) + f"\n\nStandard error of one evaluation's score "
+                                      f"(10 episodes, median over evaluations): {noise:.1f} points.\n")
+    (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print("\n".join(lines))
+    print(f"chosen lambda: {best}")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
+    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decline-study"))
+    p.add_argument("--lambdas", nargs="+", default=["0", "1e-4", "1e-3", "1e-2"])
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--steps", type=int, default=50_000)
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--report-only", action="store_true", help="only tabulate the runs that finished")
+    p.add_argument("override", nargs="*", help="extra key=value recipe overrides for every run")
+    args = p.parse_args()
+    if not args.report_only:
+        run_grid(grid(args), args.jobs)
+    write_results(args, summarise(args))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
