@@ -29,28 +29,35 @@ RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
 LAST = 5  # evaluations the choice rule averages
 
 
-def arm_name(lam: str) -> str:
-    return f"door-human-v0-ours-wd{lam}"
+def arms(args) -> list[tuple[str, str, str]]:
+    """(label, lambda, actor): every lambda with the recipe's actor, then the control arms."""
+    out = [(f"λ={lam}", lam, "gaussian") for lam in args.lambdas]
+    out += [(f"λ={lam}, tanh_normal actor", lam, "tanh_normal") for lam in args.tanh_normal_lambdas]
+    return out
+
+
+def arm_name(lam: str, actor: str) -> str:
+    return f"door-human-v0-ours-wd{lam}" + ("" if actor == "gaussian" else f"-{actor.replace('_', '')}")
 
 
 def grid(args) -> list[tuple[str, list[str]]]:
     runs = []
-    for seed in args.seeds:  # seed-major: a partial study covers every lambda
-        for lam in args.lambdas:
-            runs.append((str(RECIPE), [f"name={arm_name(lam)}", f"seed={seed}", f"out={args.out}",
+    for seed in args.seeds:  # seed-major: a partial study covers every arm
+        for _, lam, actor in arms(args):
+            runs.append((str(RECIPE), [f"name={arm_name(lam, actor)}", f"seed={seed}", f"out={args.out}",
                                        f"optim.weight_decay_q={float(lam)!r}", f"optim.weight_decay_pi={float(lam)!r}",
-                                       f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
-                                       *args.override]))
+                                       f"network.actor={actor}", f"trainer.steps={args.steps}",
+                                       "trainer.checkpoint_every=5000", *args.override]))
     return runs
 
 
 def summarise(args) -> dict:
-    """Per lambda: the curves over seeds and the figures of the table (finished runs only)."""
-    arms = {}
-    for lam in args.lambdas:
+    """Per arm: every finished run's evaluations and logged scalars."""
+    found = {}
+    for label, lam, actor in arms(args):
         seeds = {}
         for seed in args.seeds:
-            run_dir = Path(args.out) / f"{arm_name(lam)}-seed{seed}"
+            run_dir = Path(args.out) / f"{arm_name(lam, actor)}-seed{seed}"
             if not (run_dir / "eval.csv").is_file():
                 continue
             evals = read_eval_csv(run_dir / "eval.csv")
@@ -58,8 +65,8 @@ def summarise(args) -> dict:
                 continue
             seeds[seed] = (run_dir, evals, read_scalars(run_dir))
         if seeds:
-            arms[lam] = seeds
-    return arms
+            found[(label, lam, actor)] = seeds
+    return found
 
 
 def write_results(args, arms: dict) -> None:
@@ -71,7 +78,7 @@ def write_results(args, arms: dict) -> None:
     results.mkdir(parents=True, exist_ok=True)
     rows, summary = [], []
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
-    for lam, seeds in arms.items():
+    for (label, lam, actor), seeds in arms.items():
         steps = next(iter(seeds.values()))[1]["step"]
         scores = np.stack([e["score"] for _, e, _ in seeds.values()])
         success = np.stack([e["success_rate"] for _, e, _ in seeds.values()])
@@ -79,21 +86,22 @@ def write_results(args, arms: dict) -> None:
         sem = np.stack([e["return_std"] for _, e, _ in seeds.values()]) / np.sqrt(
             np.stack([e["episodes"] for _, e, _ in seeds.values()]))
         mean, std = scores.mean(0), scores.std(0, ddof=1) if len(scores) > 1 else np.zeros(len(steps))
-        line, = axes[0].plot(steps, mean, label=f"λ={lam}")
+        line, = axes[0].plot(steps, mean, label=label, linestyle="-" if actor == "gaussian" else "--")
         axes[0].fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
         for key, ax in (("weight_clamped", axes[1]), ("entropy", axes[2])):
             curves = [s[key] for _, _, s in seeds.values() if key in s]
             if curves:
                 n = min(len(c) for c in curves)
-                ax.plot(curves[0][:n, 0], np.mean([c[:n, 1] for c in curves], 0), color=line.get_color())
+                ax.plot(curves[0][:n, 0], np.mean([c[:n, 1] for c in curves], 0), color=line.get_color(),
+                        linestyle=line.get_linestyle())
         last = scores[:, -LAST:].mean(1)
         peak = scores.max(1)
-        rows.append((lam, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -LAST:].mean(1),
+        rows.append((label, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -LAST:].mean(1),
                      events[:, -LAST:].mean(1), float(np.median(sem)) * 100 / (2880.5693 + 56.5128)))
         for seed, (run_dir, evals, _) in seeds.items():
-            shutil.copyfile(run_dir / "eval.csv", results / f"eval-wd{lam}-seed{seed}.csv")
-            shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-wd{lam}-seed{seed}.yaml")
-            summary.append({"lambda": float(lam), "seed": seed, "steps": int(evals["step"][-1]),
+            shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
+            shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-{run_dir.name}.yaml")
+            summary.append({"arm": label, "lambda": float(lam), "actor": actor, "seed": seed, "steps": int(evals["step"][-1]),
                             "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
                             "last5_score": float(evals["score"][-LAST:].mean()), "mean_score": float(evals["score"].mean()),
                             "peak_score": float(evals["score"].max()), "peak_step": int(evals["step"][np.argmax(evals["score"])]),
@@ -109,7 +117,7 @@ def write_results(args, arms: dict) -> None:
         return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
     best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
-    lines = ["| λ (λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
+    lines = ["| arm (λ = λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
              "success (last 5) | events of 4 (last 5) |", "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
         mark = " **(chosen)**" if lam == best else ""
@@ -120,7 +128,7 @@ def write_results(args, arms: dict) -> None:
                                       f"(10 episodes, median over evaluations): {noise:.1f} points.\n")
     (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print("\n".join(lines))
-    print(f"chosen lambda: {best}")
+    print(f"chosen: {best}")
 
 
 def main() -> int:
@@ -128,11 +136,14 @@ def main() -> int:
     p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decline-study"))
     p.add_argument("--lambdas", nargs="+", default=["0", "1e-4", "1e-3", "1e-2"])
+    p.add_argument("--tanh-normal-lambdas", nargs="*", default=["1e-4"],
+                   help="control arms with the previous default actor (tanh-squashed Gaussian)")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=50_000)
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--report-only", action="store_true", help="only tabulate the runs that finished")
-    p.add_argument("override", nargs="*", help="extra key=value recipe overrides for every run")
+    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
+                   help="an extra recipe override for every run (repeatable)")
     args = p.parse_args()
     if not args.report_only:
         run_grid(grid(args), args.jobs)
