@@ -364,12 +364,14 @@ def test_mismatched_lengths(tmp_path, short):
         load_d4rl_hdf5(path)
 
 
+@pytest.mark.parametrize("key", ["observations", "actions", "rewards"])
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
-def test_non_finite_observations(tmp_path, bad):
+def test_non_finite_observations_actions_rewards(tmp_path, bad, key):
     obs, actions, rewards, last = steps_of([5, 6])
-    obs[7, 1] = bad
+    arrays = {"observations": obs, "actions": actions, "rewards": rewards}
+    arrays[key][7] = bad
     path = write_h5(tmp_path / "d.hdf5", obs, actions, rewards, terminals=flags(len(obs), last))
-    with pytest.raises(RMError, match=r"NaN or inf at rows \[7\]"):
+    with pytest.raises(RMError, match=rf"{key} contain NaN or inf in 1 row\(s\), first at rows \[7\]"):
         load_d4rl_hdf5(path)
 
 

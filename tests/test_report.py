@@ -325,18 +325,23 @@ def test_error_missing_path(tmp_path):
         find_run_dirs([tmp_path / "nowhere"])
 
 
-def test_error_run_without_evaluations_is_named(tmp_path):
+def test_runs_without_evaluations_or_failed_are_left_out_and_named(tmp_path, capsys):
     write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
     empty = write_run(tmp_path, "door-human", 1, "iql", True, "door", {}, steps=())
-    with pytest.raises(RMError, match=re.escape(f"run {empty} has no evaluations")):
-        cli_report.run(args(tmp_path, out=tmp_path / "out"))
-    assert not (tmp_path / "out" / "results.md").exists()
+    failed = write_run(tmp_path, "door-human", 2, "iql", True, "door", {6000: 99.0})
+    (failed / "failed.json").write_text(json.dumps({"step": 7, "message": "step 7: loss_qvalue is NaN or inf"}))
+    assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
+    err = capsys.readouterr().err
+    assert f"run {empty} has no evaluations" in err and f"{failed}: failed: step 7: loss_qvalue" in err
+    results = (tmp_path / "out" / "results.md").read_text()
+    assert "## Runs left out" in results and str(failed) in results
+    assert "99.0" not in results  # a failed run is never a score
 
 
-def test_error_several_runs_without_evaluations(tmp_path):
+def test_error_when_no_run_has_evaluations(tmp_path):
     a = write_run(tmp_path, "door-human", 0, "iql", True, "door", {}, steps=())
     b = write_run(tmp_path, "door-human", 1, "iql", True, "door", {}, steps=())
-    with pytest.raises(RMError, match="2 runs have no evaluations") as err:
+    with pytest.raises(RMError, match=r"no run has evaluations to report \(2 runs\)") as err:
         load_runs([tmp_path])
     assert str(a) in str(err.value) and str(b) in str(err.value)
 

@@ -138,7 +138,7 @@ def test_cli_train_and_multirun(tmp_path, dataset, capsys):
     assert "unknown key" in capsys.readouterr().err
 
 
-def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_path, dataset, capsys):
+def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_path, dataset, capfd):
     path = make_recipe(tmp_path, dataset)
     grid = ["train", str(path), "trainer.steps=10", "trainer.checkpoint_every=5", "seed=0,1,2", "--multirun"]
     runs = tmp_path / "runs"
@@ -148,18 +148,18 @@ def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_pat
     (runs / "tiny-seed2" / "recipe.yaml").write_text("name: tiny\n")
     finished = (runs / "tiny-seed0" / "checkpoint.pt").stat().st_mtime_ns
     assert main(grid) == 0
-    assert "1 of 3 runs already finished" in capsys.readouterr().err
+    assert "1 of 3 runs already finished" in capfd.readouterr().err
     assert (runs / "tiny-seed0" / "checkpoint.pt").stat().st_mtime_ns == finished
     for seed in (1, 2):
         assert torch.load(runs / f"tiny-seed{seed}" / "checkpoint.pt", weights_only=True)["step"] == 10
     steps = [int(line.split(",")[0]) for line in (runs / "tiny-seed1" / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
     assert steps == [5, 10]  # the first run logged its last step, the resumed one continued
     assert main(grid) == 0
-    assert "3 of 3 runs already finished" in capsys.readouterr().err
+    assert "3 of 3 runs already finished" in capfd.readouterr().err
     (runs / "tiny-seed2" / "checkpoint.pt").unlink()
     (runs / "tiny-seed2" / "notes.txt").write_text("mine")
     assert main(grid) == 2
-    assert "holds ['notes.txt']" in capsys.readouterr().err
+    assert "holds files the trainer did not write: ['notes.txt']" in capfd.readouterr().err
     assert (runs / "tiny-seed2" / "notes.txt").read_text() == "mine"
 
 

@@ -101,9 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     except RMError as err:
         print(f"rmrl {args.command}: error: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"rmrl {args.command}: interrupted; nothing was written", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        signum = getattr(err, "signum", None)  # the trainer's RunInterrupted: a checkpoint was written
+        message = getattr(err, "message", None) or "interrupted; nothing was written"
+        print(f"rmrl {args.command}: {message}", file=sys.stderr)
+        return 128 + (signum or 2)
 
 
 if __name__ == "__main__":

@@ -51,7 +51,10 @@ def run(args) -> int:
 
     if args.decimals < 0 or args.decimals > 6:
         raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
-    runs = load_runs(args.paths, dataset_from=args.dataset_from)
+    skipped: list[str] = []
+    runs = load_runs(args.paths, dataset_from=args.dataset_from, skipped=skipped)
+    for line in skipped:
+        print(f"rmrl report: left out {line}", file=sys.stderr)
     groups = group_runs(runs)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -68,7 +71,7 @@ def run(args) -> int:
         written.append(plot_dataset_sizes(runs, out / SIZES))
     elif (out / SIZES).is_file():
         (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
-    _write_text(out / RESULTS, results_markdown(runs, groups, args.decimals, figures))
+    _write_text(out / RESULTS, results_markdown(runs, groups, args.decimals, figures, skipped))
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))

@@ -40,52 +40,29 @@ def run(args) -> int:
 def run_grid(runs: list[tuple[str, list[str]]], jobs: int) -> None:
     """``(recipe path, overrides)`` runs, resumably: finished runs are skipped, killed ones resumed.
 
-    Every recipe is loaded first, so a bad grid is refused before anything starts.
+    Every recipe is loaded first, so a bad grid is refused before anything starts. A run marked
+    failed (a non-finite loss) is not retried: it would fail the same way.
     """
+    from rm_torchrl.train.rundir import FAILED, run_status
+
     recipes = [load_recipe(path, overrides) for path, overrides in runs]
-    todo, done = [], 0
+    todo, done, failed = [], 0, []
     for recipe, (path, overrides) in zip(recipes, runs):
-        state = run_state(recipe)
-        if state == "finished":
+        status = run_status(recipe)
+        if status == "finished":
             done += 1
+        elif status == "failed":
+            failed.append(str(recipe.run_dir))
         else:
-            todo.append([path, *overrides, *(["resume=true"] if state == "resumable" else [])])
+            todo.append([path, *overrides, *(["resume=true"] if status == "resumable" else [])])
     if done:
         tqdm.write(f"{done} of {len(runs)} runs already finished: skipped", file=sys.stderr)
+    if failed:
+        tqdm.write(f"{len(failed)} runs failed before and are not retried (see their {FAILED}): {failed}",
+                   file=sys.stderr)
     run_many(todo, jobs)
-
-
-#: What the trainer writes into a run directory before its first checkpoint.
-_TRAINER_FILES = ("recipe.yaml", "eval.csv", "refine_report.json", "logs")
-
-
-def run_state(recipe) -> str:
-    """``new``, ``resumable`` (a checkpoint short of ``trainer.steps``) or ``finished``, for a multirun.
-
-    A run killed before its first checkpoint left only the trainer's own files: they are removed
-    so that it starts again; anything else in its directory is refused rather than deleted.
-    """
-    import shutil
-
-    import torch
-
-    run_dir = recipe.run_dir
-    ckpt = run_dir / "checkpoint.pt"
-    if ckpt.is_file():
-        try:
-            step = int(torch.load(ckpt, map_location="cpu", weights_only=True)["step"])
-        except Exception as err:  # a truncated or foreign file
-            raise RMError(f"{ckpt} cannot be read ({type(err).__name__}); move it away to restart that run") from None
-        return "finished" if step >= recipe.trainer.steps else "resumable"
-    if not run_dir.is_dir():
-        return "new"
-    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in _TRAINER_FILES)
-    if foreign:
-        raise RMError(f"run directory {run_dir} has no checkpoint and holds {foreign}; move it away to start that run")
-    for name in _TRAINER_FILES:
-        path = run_dir / name
-        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
-    return "new"
+    if failed:
+        raise RMError(f"{len(failed)} of {len(runs)} runs are marked failed: {failed}")
 
 
 def run_many(runs: list[list[str]], jobs: int) -> None:

@@ -80,8 +80,11 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
     for key in ("observations", "actions", "rewards"):
         if not np.issubdtype(arrays[key].dtype, np.number):
             raise RMError(f"{path}: {key} must be numeric, got dtype {arrays[key].dtype}")
-    if not np.isfinite(obs).all():
-        raise RMError(f"{path}: observations contain NaN or inf at rows {np.flatnonzero(~np.isfinite(obs).all(1))[:5].tolist()}")
+    for key in ("observations", "actions", "rewards"):
+        finite = np.isfinite(arrays[key])
+        if not finite.all():
+            rows = np.flatnonzero(~finite.reshape(n, -1).all(1))
+            raise RMError(f"{path}: {key} contain NaN or inf in {rows.size} row(s), first at rows {rows[:5].tolist()}")
     return arrays
 
 

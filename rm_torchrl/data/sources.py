@@ -3,23 +3,46 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tensordict import TensorDict
+import torch
+from tensordict import TensorDict, TensorDictBase
 
 from rm_torchrl.errors import RMError
 
 
 def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
-    """``*.hdf5`` / ``*.h5`` D4RL files, ``minari:<dataset id>`` or a local Minari dataset name."""
+    """``*.hdf5`` / ``*.h5`` D4RL files, ``minari:<dataset id>`` or a local Minari dataset name.
+
+    Every floating-point entry (observations, actions, rewards) must be finite: one NaN would
+    otherwise train to NaN networks that still report a score.
+    """
     if not source:
         raise RMError("no dataset given")
+    if Path(source).is_dir():
+        raise RMError(f"{source} is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari "
+                      "dataset name")
     if source.startswith("minari:"):
         from rm_torchrl.data.minari import load_minari
 
-        return load_minari(source[len("minari:"):])
-    if Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
+        td = load_minari(source[len("minari:"):])
+    elif Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
         from rm_torchrl.data.d4rl import load_d4rl_hdf5
 
-        return load_d4rl_hdf5(source, episode_ends=episode_ends)
-    from rm_torchrl.data.minari import load_minari
+        td = load_d4rl_hdf5(source, episode_ends=episode_ends)
+    else:
+        from rm_torchrl.data.minari import load_minari
 
-    return load_minari(source, download=False)
+        td = load_minari(source, download=False)
+    require_finite(td, source)
+    return td
+
+
+def require_finite(td: TensorDictBase, source: str) -> None:
+    """Refuses NaN or inf in any floating-point entry of ``td``, naming the entry and its first rows."""
+    for key, value in td.items(include_nested=True, leaves_only=True):
+        if value.is_floating_point():
+            bad = ~torch.isfinite(value.reshape(value.shape[0], -1)).all(1) if value.ndim else ~torch.isfinite(value)
+            if bad.any():
+                name = "/".join(key) if isinstance(key, tuple) else key
+                rows = bad.nonzero().flatten()
+                raise RMError(f"{source}: {name} holds NaN or inf in {rows.numel()} transition(s), "
+                              f"first at {rows[:5].tolist()}")

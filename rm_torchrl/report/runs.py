@@ -41,6 +41,7 @@ from rm_torchrl.errors import RMError, read_yaml
 EVAL_FILE = "eval.csv"
 RECIPE_FILE = "recipe.yaml"
 REFINE_FILE = "refine_report.json"
+FAILED_FILE = "failed.json"  # written by the trainer when a non-finite loss stopped a run
 EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
 #: The one text column of eval.csv: the reward convention of the returns (``d4rl`` or ``env``).
 REWARD_COLUMN = "reward"
@@ -337,20 +338,35 @@ def read_run(run_dir: str | os.PathLike, dataset_from: str = "name") -> Run:
                dataset=dataset_label(recipe, dataset_from), method=method_label(recipe), metric=metric)
 
 
-def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name") -> list[Run]:
-    """Every run at or below ``paths``; all runs without evaluations are named in one error."""
-    runs, empty = [], []
+def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
+              skipped: list[str] | None = None) -> list[Run]:
+    """Every scoreable run at or below ``paths``.
+
+    Runs marked failed (``failed.json``: a non-finite loss stopped them) and runs without any
+    evaluation yet are left out, each with a line in ``skipped`` when given; if no run is left,
+    the error names them all.
+    """
+    runs, left_out = [], []
     for run_dir in find_run_dirs(paths):
+        failed = run_dir / FAILED_FILE
+        if failed.is_file():
+            try:
+                why = json.loads(failed.read_text()).get("message", "")
+            except (OSError, ValueError, AttributeError):
+                why = ""
+            left_out.append(f"{run_dir}: failed{': ' + why if why else ''}")
+            continue
         try:
             runs.append(read_run(run_dir, dataset_from))
         except RMError as err:
             if "has no evaluations" not in str(err):
                 raise
-            empty.append(str(err))
-    if len(empty) == 1:
-        raise RMError(empty[0])
-    if empty:
-        raise RMError(f"{len(empty)} runs have no evaluations:\n  " + "\n  ".join(empty))
+            left_out.append(str(err))
+    if not runs:
+        raise RMError(left_out[0] if len(left_out) == 1 else
+                      f"no run has evaluations to report ({len(left_out)} runs):\n  " + "\n  ".join(left_out))
+    if skipped is not None:
+        skipped.extend(left_out)
     return runs
 
 

@@ -159,9 +159,9 @@ def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
 
 
 def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None, decimals: int = 1,
-                     figures: Sequence[tuple[str, str]] = ()) -> str:
-    """The whole ``results.md``: what was measured, Table 1, Table 2 and links to ``figures``
-    (``(title, relative path)`` pairs)."""
+                     figures: Sequence[tuple[str, str]] = (), skipped: Sequence[str] = ()) -> str:
+    """The whole ``results.md``: what was measured, Table 1, Table 2, links to ``figures``
+    (``(title, relative path)`` pairs) and the runs left out (``skipped``: failed or not yet evaluated)."""
     runs = list(runs)
     groups = list(groups) if groups is not None else group_runs(runs)
     parts = ["# Results", "", *_describe(runs, groups), "",
@@ -179,4 +179,7 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
         parts += ["## Figures", ""]
         for title, path in figures:
             parts += [f"![{title}]({path})", ""]
+    if skipped:
+        parts += ["## Runs left out", "", "Not scored: failed, or not evaluated yet.", "",
+                  *(f"- {line}" for line in skipped), ""]
     return "\n".join(parts)

@@ -7,7 +7,9 @@ path of the offending entry.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -120,6 +122,9 @@ class Recipe:
         return dataclasses.asdict(self)
 
 
+#: Numbers PyYAML (YAML 1.1) reads as strings, such as ``1e-3``: a float field takes them as floats.
+_FLOAT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
+
 _CHOICES = {
     "data.episode_ends": ("auto", "terminals", "timeouts", "both"),
     "rm.encoding": ("one_hot", "slots"),
@@ -147,7 +152,11 @@ def _convert(value: Any, kind, path: str):
         if isinstance(value, int) and not isinstance(value, bool):
             return value
     elif origin is float:
+        if isinstance(value, str) and _FLOAT.match(value.strip()):
+            value = float(value)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise RMError(f"recipe: {path} must be a finite number, got {value!r}")
             return float(value)
     elif origin is str:
         if isinstance(value, str):
@@ -222,6 +231,10 @@ def validate(recipe: Recipe) -> None:
 
     if not recipe.data.source:
         raise RMError("recipe: data.source is required")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._=+-]*", recipe.name) or ".." in recipe.name:
+        raise RMError(f"recipe: name must be a plain directory name (letters, digits, . _ - = +), got {recipe.name!r}")
+    if recipe.trainer.threads < 0:
+        raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
     if recipe.data.refine:
         if not recipe.data.events:
             raise RMError("recipe: data.events is required when data.refine is true")

@@ -87,10 +87,9 @@ def prepare_data(recipe: Recipe) -> TrainingData:
         obs_keys.append(ENCODING_KEY)
     td = TensorDict(columns, batch_size=data.batch_size)
     obs = td.get("observation")
-    if not torch.isfinite(obs).all() or not torch.isfinite(td.get("action")).all():
-        raise RMError("the training data holds NaN or inf observations or actions")
     if recipe.trainer.normalize_obs:
-        loc, scale = obs.mean(0), obs.std(0).clamp_min(1e-3)
+        # one transition has no sample std (NaN with Bessel's correction): its spread is 0
+        loc, scale = obs.mean(0), obs.std(0, correction=int(len(obs) > 1)).clamp_min(1e-3)
     else:
         loc, scale = torch.zeros(obs.shape[-1]), torch.ones(obs.shape[-1])
     del raw, data  # the columns hold what training needs; the rest can go before the next copies

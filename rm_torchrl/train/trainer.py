@@ -12,7 +12,9 @@ import csv
 import json
 import os
 import random
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -24,6 +26,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
 from rm_torchrl.train.losses import LOSS_TERMS, build_method, compile_method
+from rm_torchrl.train.rundir import CHECKPOINT, RunLock, load_checkpoint, mark_failed, open_run, save_checkpoint
 
 #: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
 EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
@@ -55,24 +58,72 @@ def _trim_history(run_dir: Path, step: int) -> None:
         os.replace(tmp, path)
 
 
-def _save(path: Path, state: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+class NonFinite(RuntimeError):
+    """A loss term or gradient became NaN or inf: the run cannot continue meaningfully."""
+
+
+def _check_gradients(method) -> None:
+    params = [p for opt in method.optimizers for g in opt.param_groups for p in g["params"] if p.grad is not None]
+    norms = torch._foreach_norm([p.grad for p in params])
+    if not bool(torch.isfinite(torch.stack(norms)).all()):
+        names = {id(p): n for n, p in method.loss.named_parameters()}
+        bad = next(p for p, n in zip(params, norms) if not torch.isfinite(n))
+        raise NonFinite(f"the gradient of {names.get(id(bad), 'a parameter')}")
 
 
 def gradient_step(method, terms, batch):
-    """One update of every network of ``method`` on ``batch``; returns the loss TensorDict."""
+    """One update of every network of ``method`` on ``batch``; returns the loss TensorDict.
+
+    Raises :class:`NonFinite` naming the term (or parameter) as soon as a loss term or a gradient
+    is NaN or inf, before any optimiser step applies it.
+    """
     losses = method.compute_loss(batch)
     total = sum(losses.get(t) for t in terms)
+    if not bool(torch.isfinite(total)):
+        raise NonFinite(next((t for t in terms if not bool(torch.isfinite(losses.get(t)))), "the total loss"))
     for opt in method.optimizers:
         opt.zero_grad(set_to_none=True)
     total.backward()
+    _check_gradients(method)
     for opt in method.optimizers:
         opt.step()
     if method.target_updater is not None:
         method.target_updater.step()
     return losses
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM stopped the run between two updates, after its checkpoint was written."""
+
+    def __init__(self, signum: int, message: str):
+        super().__init__(message)
+        self.signum, self.message = signum, message
+
+
+class _StopOnSignal:
+    """SIGINT and SIGTERM (what SLURM, Kubernetes and submitit send) ask the loop to stop at the next
+    update boundary, so the checkpoint holds a whole update and the RNG state right after it; a
+    second signal interrupts at once (the last periodic checkpoint stays)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.signum = None
+        self._previous = {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def __enter__(self) -> "_StopOnSignal":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
 
 
 def _first_step(method, terms, batch):
@@ -89,14 +140,20 @@ def _first_step(method, terms, batch):
 
 
 def train(recipe: Recipe, progress: bool = True) -> Path:
-    """Runs ``recipe`` to ``trainer.steps`` gradient steps; returns the run directory."""
+    """Runs ``recipe`` to ``trainer.steps`` gradient steps; returns the run directory.
+
+    One process per run directory (:class:`RunLock`). Everything about the start is decided
+    before anything is written (:func:`open_run`). SIGINT/SIGTERM checkpoint at the next update
+    and raise :class:`RunInterrupted`; a non-finite loss or gradient marks the run failed.
+    """
     run_dir = recipe.run_dir
-    ckpt_path = run_dir / "checkpoint.pt"
-    if run_dir.exists() and not recipe.resume and any(run_dir.iterdir()):
-        raise RMError(f"run directory {run_dir} exists; pass resume=true to continue it or pick another name/seed")
-    if recipe.resume and not ckpt_path.is_file():
-        raise RMError(f"resume=true but {ckpt_path} does not exist")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    with RunLock(run_dir):
+        state = open_run(recipe)
+        return _train(recipe, run_dir, state, progress)
+
+
+def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) -> Path:
+    ckpt_path = run_dir / CHECKPOINT
     if recipe.trainer.threads:
         torch.set_num_threads(recipe.trainer.threads)
     # Weights and optimiser moments drift into subnormal floats within a few thousand updates
@@ -113,19 +170,18 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
         compile_method(method)
     terms = LOSS_TERMS[recipe.method.name]
     generator = torch.Generator().manual_seed(recipe.seed)
-    (run_dir / "recipe.yaml").write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
-    if data.report is not None:
-        (run_dir / "refine_report.json").write_text(json.dumps(data.report, indent=2) + "\n")
     evaluator = None
     if recipe.eval.env:
         from rm_torchrl.train.evaluate import Evaluator
 
         evaluator = Evaluator(recipe, data, method.policy)
+    (run_dir / "recipe.yaml").write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+    if data.report is not None:
+        (run_dir / "refine_report.json").write_text(json.dumps(data.report, indent=2) + "\n")
 
     # --- resume -----------------------------------------------------------------------------
     start = 0
-    if recipe.resume:
-        state = torch.load(ckpt_path, weights_only=False)
+    if state is not None:
         method.loss.load_state_dict(state["loss"])
         for opt, opt_state in zip(method.optimizers, state["optimizers"]):
             opt.load_state_dict(opt_state)
@@ -139,7 +195,7 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
         eval_csv.write_text(",".join(EVAL_COLUMNS) + "\n")
 
     def checkpoint(step: int) -> None:
-        _save(ckpt_path, {
+        save_checkpoint(ckpt_path, {
             "step": step,
             "loss": method.loss.state_dict(),
             "optimizers": [opt.state_dict() for opt in method.optimizers],
@@ -165,12 +221,22 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     completed = start
     started = time.perf_counter()
     eval_seconds = 0.0  # updates_per_second counts gradient steps only
-    try:
+    with _StopOnSignal() as stop:
         for step in range(start + 1, recipe.trainer.steps + 1):
+            if stop.signum is not None:
+                break
             update = _first_step if step == start + 1 else gradient_step
             if method.schedule is not None:
                 method.schedule(step)
-            losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
+            try:
+                losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
+            except NonFinite as err:
+                bar.close()
+                kept = (f"its checkpoint of step {load_checkpoint(ckpt_path)['step']} is kept" if ckpt_path.is_file()
+                        else "no checkpoint was written")
+                message = f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; {kept}"
+                mark_failed(run_dir, step, str(err), message)
+                raise RMError(message) from None
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
                 for key, entry in losses.items():
                     if entry.numel() == 1:  # the loss terms and the loss's scalar diagnostics
@@ -192,10 +258,11 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
             bar.update()
             if shown and step % 50 == 0:
                 bar.set_postfix(shown, refresh=False)
-    except KeyboardInterrupt:
-        checkpoint(completed)
         bar.close()
-        raise
-    bar.close()
-    checkpoint(completed)
+        checkpoint(completed)
+    if stop.signum is not None:
+        name = signal.Signals(stop.signum).name
+        raise RunInterrupted(stop.signum, f"{name}: stopped after step {completed} of {recipe.trainer.steps}; "
+                                          f"checkpoint written, continue with resume=true")
     return run_dir
+

@@ -1,0 +1,152 @@
+"""The run directory: one process at a time, safe checkpoints, and whether a run starts, resumes or is done.
+
+A run directory holds only what the trainer writes (:data:`TRAINER_FILES`). A directory without a
+checkpoint is a run that never got going (killed during set-up, a bad evaluation env): the next
+start clears the trainer's files and begins again. Anything else in it is refused, never deleted.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import shutil
+from pathlib import Path
+
+import torch
+
+from rm_torchrl.errors import RMError
+
+CHECKPOINT = "checkpoint.pt"
+FAILED = "failed.json"
+LOCK = ".lock"
+TRAINER_FILES = ("recipe.yaml", "eval.csv", "refine_report.json", "logs", CHECKPOINT, "checkpoint.tmp", FAILED, LOCK)
+#: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
+#: logging, threads, compile may change between a run and its continuation).
+FROZEN = ("seed", "data", "rm", "method", "network", "optim", "trainer.batch_size", "trainer.gamma",
+          "trainer.tau", "trainer.normalize_obs", "trainer.flush_denormal")
+_STATE_KEYS = ("step", "loss", "optimizers", "generator", "torch_rng", "obs_loc", "obs_scale", "recipe")
+
+
+class RunLock:
+    """An exclusive ``flock`` on ``RUN_DIR/.lock`` for the run's life.
+
+    The kernel drops the lock when its process dies, however it dies, so a lock left by a killed
+    run never blocks the next one; the file records the holder's pid for the error message.
+    """
+
+    def __init__(self, run_dir: Path):
+        self.path = Path(run_dir) / LOCK
+        self.fd = None
+
+    def __enter__(self) -> "RunLock":
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise RMError(f"cannot use run directory {self.path.parent}: {err.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
+                raise RMError(f"run directory {self.path.parent} is in use by process {holder}") from None
+            raise
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.close(self.fd)  # releases the flock; the file stays (harmless, recognised as the trainer's)
+            self.fd = None
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Plain tensors and containers only (loadable with ``weights_only=True``), written atomically."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A checkpoint written by :func:`save_checkpoint`; never unpickles code (``weights_only=True``)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # truncated zip, garbage, a pickle with code in it: all unusable
+        first = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+        raise RMError(f"{path} is not a readable checkpoint ({first}); move it away to start the run again") from None
+    if not isinstance(state, dict) or any(k not in state for k in _STATE_KEYS):
+        raise RMError(f"{path} is not a checkpoint of rm_torchrl (expected the entries {list(_STATE_KEYS)})")
+    return state
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in d.items():
+        path = f"{prefix}{key}"
+        out.update(_flat(value, path + ".") if isinstance(value, dict) and value else {path: value})
+    return out
+
+
+def recipe_changes(old: dict, new: dict) -> list[str]:
+    """``key: old -> new`` for every :data:`FROZEN` entry that differs between two recipe dicts."""
+    a, b = _flat(old), _flat(new)
+    frozen = [k for k in sorted(set(a) | set(b)) if any(k == f or k.startswith(f + ".") for f in FROZEN)]
+    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in frozen if a.get(k) != b.get(k)]
+
+
+def _foreign(run_dir: Path) -> list[str]:
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in TRAINER_FILES)
+
+
+def open_run(recipe) -> dict | None:
+    """Decides, before anything is written, how ``recipe`` starts: returns the checkpoint to resume, or None.
+
+    Call it holding the :class:`RunLock`. Refuses: a checkpoint without ``resume=true``, a resume
+    whose method, data or network differ from the checkpoint's, a checkpoint already past
+    ``trainer.steps``, and a directory without a checkpoint that holds files the trainer did not write.
+    """
+    run_dir = recipe.run_dir
+    ckpt = run_dir / CHECKPOINT
+    if ckpt.is_file():
+        if not recipe.resume:
+            raise RMError(f"run directory {run_dir} holds a checkpoint; pass resume=true to continue it "
+                          "or pick another name/seed")
+        state = load_checkpoint(ckpt)
+        changes = recipe_changes(state["recipe"], recipe.to_dict())
+        if changes:
+            raise RMError(f"resume=true with a recipe that differs from the checkpoint's: {'; '.join(changes)}")
+        if state["step"] > recipe.trainer.steps:
+            raise RMError(f"{ckpt} is at step {state['step']}, past trainer.steps={recipe.trainer.steps}")
+        (run_dir / FAILED).unlink(missing_ok=True)
+        return state
+    foreign = _foreign(run_dir)
+    if foreign:
+        raise RMError(f"run directory {run_dir} has no checkpoint and holds files the trainer did not write: "
+                      f"{foreign}; move them away or pick another name/seed")
+    for name in TRAINER_FILES:
+        path = run_dir / name
+        if name != LOCK:
+            shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+    return None
+
+
+def mark_failed(run_dir: Path, step: int, what: str, message: str) -> None:
+    """``failed.json``: the run stopped on an error; ``rmrl report`` leaves it out of every table."""
+    tmp = run_dir / f".{FAILED}.tmp"
+    tmp.write_text(json.dumps({"step": step, "what": what, "message": message}, indent=1) + "\n")
+    os.replace(tmp, run_dir / FAILED)
+
+
+def run_status(recipe) -> str:
+    """``new``, ``resumable``, ``finished`` or ``failed``: what a multirun does with ``recipe``'s run."""
+    run_dir = recipe.run_dir
+    if (run_dir / FAILED).is_file():
+        return "failed"
+    ckpt = run_dir / CHECKPOINT
+    if not ckpt.is_file():
+        return "new"
+    return "finished" if load_checkpoint(ckpt)["step"] >= recipe.trainer.steps else "resumable"

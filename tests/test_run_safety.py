@@ -1,0 +1,194 @@
+"""Runs that never lie and never lose work: non-finite guards, safe resume, locks, signals, checkpoints.
+
+Real files, real processes and real signals: nothing of what is tested is mocked.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from rm_torchrl.cli.main import main
+from rm_torchrl.errors import RMError
+from rm_torchrl.train import load_recipe, train
+
+from test_train import make_recipe, write_d4rl
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
+
+
+def spawn(*argv: str) -> subprocess.Popen:
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "rm_torchrl.cli.main", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def wait_for(path: Path, proc: subprocess.Popen, timeout: float = 120) -> None:
+    end = time.time() + timeout
+    while not path.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() < end, f"{path} did not appear"
+        time.sleep(0.05)
+
+
+def same_parameters(a: Path, b: Path) -> None:
+    sa, sb = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
+    assert sa["step"] == sb["step"]
+    for key, value in sa["loss"].items():
+        torch.testing.assert_close(value, sb["loss"][key], rtol=0, atol=0, msg=key)
+
+
+# --- non-finite values -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("key", ["rewards", "actions", "observations"])
+def test_nan_in_the_data_is_refused_by_train_refine_and_import(tmp_path, dataset, key, capsys, cache):
+    bad = tmp_path / "bad.hdf5"
+    bad.write_bytes(dataset.read_bytes())
+    with h5py.File(bad, "r+") as f:
+        values = f[key][()]
+        values[5] = np.nan
+        del f[key]
+        f[key] = values
+    assert main(["train", str(make_recipe(tmp_path, bad)), "--no-progress"]) == 2
+    assert main(["refine", "--dataset", str(bad), "--events", "door", "--out", str(tmp_path / "refined")]) == 2
+    assert main(["import-d4rl", str(bad), "--out-name", "test/bad-v0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"{key} contain NaN or inf in 1 row(s), first at rows [5]") == 3
+    assert "Traceback" not in err
+    assert not (tmp_path / "refined").exists()
+    assert not any(cache.rglob("bad-v0*"))
+
+
+@pytest.mark.parametrize("override", ["optim.lr_actor=.nan", "method.temperature=.inf", "trainer.tau=-.inf"])
+def test_non_finite_recipe_values_are_refused(tmp_path, dataset, override):
+    with pytest.raises(RMError, match=rf"{override.split('=')[0]} must be a finite number"):
+        load_recipe(make_recipe(tmp_path, dataset), [override])
+
+
+def test_a_diverging_run_stops_at_the_first_non_finite_loss_and_is_not_reported(tmp_path, dataset, capsys):
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 5, every: 10, episodes: 1, score: door}\n")
+    code = main(["train", str(recipe), "optim.lr_critic=1.0e+30", "optim.lr_value=1.0e+30", "trainer.steps=200",
+                 "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert "is NaN or inf; training stopped and the run is marked failed" in err
+    run_dir = tmp_path / "runs" / "tiny-seed0"
+    failed = json.loads((run_dir / "failed.json").read_text())
+    assert failed["step"] < 200 and f"step {failed['step']}:" in err
+    assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "report")]) == 2
+    assert "failed: step" in capsys.readouterr().err  # the only run is failed: nothing to score
+    assert main(["train", str(recipe), "optim.lr_critic=1.0e+30", "optim.lr_value=1.0e+30", "trainer.steps=200",
+                 "--multirun"]) == 2
+    assert "1 runs failed before and are not retried" in capsys.readouterr().err
+
+
+# --- resume --------------------------------------------------------------------------------------
+
+def test_a_resume_with_another_method_is_refused_before_anything_is_written(tmp_path, dataset):
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: True -> False; method.name: 'iql' -> 'bc'"):
+        train(load_recipe(recipe, ["resume=true", "method.name=bc", "data.refine=false", "trainer.steps=20"]),
+              progress=False)
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+
+
+def test_a_resume_below_the_checkpoint_step_is_refused(tmp_path, dataset):
+    recipe = make_recipe(tmp_path, dataset)
+    train(load_recipe(recipe, ["trainer.steps=20"]), progress=False)
+    with pytest.raises(RMError, match="is at step 20, past trainer.steps=10"):
+        train(load_recipe(recipe, ["resume=true", "trainer.steps=10"]), progress=False)
+
+
+class _Payload:
+    def __reduce__(self):
+        return (Path.write_text, (Path(os.environ["RM_PAYLOAD"]), "ran"))
+
+
+@pytest.mark.parametrize("content", ["pickle", "truncated", "garbage"])
+def test_checkpoints_never_run_code_and_bad_ones_are_one_line_errors(tmp_path, dataset, content, monkeypatch, capsys):
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
+    ckpt = run_dir / "checkpoint.pt"
+    marker = tmp_path / "payload-ran"
+    monkeypatch.setenv("RM_PAYLOAD", str(marker))
+    if content == "pickle":
+        state = torch.load(ckpt, weights_only=True)
+        state["evil"] = _Payload()
+        torch.save(state, ckpt)
+    elif content == "truncated":
+        ckpt.write_bytes(ckpt.read_bytes()[:1000])
+    else:
+        ckpt.write_bytes(b"not a checkpoint at all")
+    assert main(["train", str(recipe), "trainer.steps=20", "resume=true", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "is not a readable checkpoint" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not marker.exists()
+
+
+def test_a_run_without_checkpoint_restarts_without_resume(tmp_path, dataset):
+    """Killed during set-up, or before its first checkpoint: the next start begins again."""
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = tmp_path / "runs" / "tiny-seed0"
+    (run_dir / "logs" / "scalars").mkdir(parents=True)
+    (run_dir / "recipe.yaml").write_text("name: tiny\n")
+    (run_dir / "eval.csv").write_text("step,return_mean\n999,1\n")
+    train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 10
+    assert "999" not in (run_dir / "eval.csv").read_text()
+
+
+# --- one process per run -------------------------------------------------------------------------
+
+def test_a_second_process_on_the_same_run_is_refused(tmp_path, dataset):
+    recipe = make_recipe(tmp_path, dataset)
+    first = spawn("train", str(recipe), "trainer.steps=100000", "trainer.log_every=10", "--no-progress")
+    try:
+        wait_for(tmp_path / "runs" / "tiny-seed0" / "logs" / "scalars" / "loss_actor.csv", first)
+        second = spawn("train", str(recipe), "trainer.steps=100000", "resume=true", "--no-progress")
+        _, err = second.communicate(timeout=120)
+        assert second.returncode == 2
+        assert f"is in use by process {first.pid}" in err and "Traceback" not in err
+    finally:
+        first.kill()
+        first.wait()
+    # the kernel released the dead process's lock: the run can continue
+    ckpt = tmp_path / "runs" / "tiny-seed0" / "checkpoint.pt"
+    at = torch.load(ckpt, weights_only=True)["step"] if ckpt.exists() else 0
+    proc = spawn("train", str(recipe), f"trainer.steps={at + 10}", *(["resume=true"] if at else []), "--no-progress")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+
+
+# --- signals ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_checkpoints_and_the_resumed_run_is_bit_identical(tmp_path, dataset, signum):
+    recipe = make_recipe(tmp_path, dataset)
+    steps = ["trainer.steps=1500", "trainer.log_every=10", "trainer.checkpoint_every=100000"]
+    straight = train(load_recipe(recipe, ["name=straight", *steps]), progress=False)
+    proc = spawn("train", str(recipe), "name=killed", *steps, "--no-progress")
+    wait_for(tmp_path / "runs" / "killed-seed0" / "logs" / "scalars" / "loss_actor.csv", proc)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signum, err
+    stopped = torch.load(tmp_path / "runs" / "killed-seed0" / "checkpoint.pt", weights_only=True)["step"]
+    assert 0 < stopped < 1500
+    assert f"{signal.Signals(signum).name}: stopped after step {stopped} of 1500; checkpoint written" in err
+    resumed = train(load_recipe(recipe, ["name=killed", "resume=true", *steps]), progress=False)
+    same_parameters(straight / "checkpoint.pt", resumed / "checkpoint.pt")
+    logged = [int(line.split(",")[0]) for line in (resumed / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
+    assert logged == list(range(10, 1501, 10))
