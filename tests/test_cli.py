@@ -7,6 +7,7 @@ download; the paper's numbers are checked on the real door-human-v0 file when it
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -182,14 +183,53 @@ def test_output_exists_without_and_with_overwrite(capsys, tmp_path, tiny):
     (out / "keep.txt").write_text("previous")
     args = ["refine", "--dataset", tiny, "--events", "door", "--alpha", "0.5", "--out", out]
     assert_error(capsys, "refine", args, "already exists; pass --overwrite")
-    assert (out / "keep.txt").read_text() == "previous"
+    # --overwrite replaces only an earlier refine output: anything else is named and kept
+    assert_error(capsys, "refine", [*args, "--overwrite"], "replaces only an earlier refine output")
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    (out / "keep.txt").unlink()
 
     code, _, err = run(capsys, *args, "--overwrite")
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == ["data", "report.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".rm_torchrl-refined", "data", "report.json"]
+    code, _, err = run(capsys, *args, "--overwrite")  # its own output: replaced
+    assert code == 0, err
     assert load_report(out)["order"] == DOOR_EVENTS
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert out.stat().st_mode & 0o777 == 0o777 & ~_umask()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_output_paths_that_are_refused(capsys, tmp_path, tiny, monkeypatch):
+    args = ["refine", "--dataset", tiny, "--events", "door"]
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("mine")
+    assert_error(capsys, "refine", [*args, "--out", a_file, "--overwrite"], "exists and is not a directory")
+    assert a_file.read_text() == "mine"
+    monkeypatch.chdir(tmp_path)
+    assert_error(capsys, "refine", [*args, "--out", ".", "--overwrite"], "is the current directory or one above it")
+    assert_error(capsys, "refine", [*args, "--out", "..", "--overwrite"], "is the current directory or one above it")
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    if os.geteuid() != 0:  # root writes anywhere
+        assert_error(capsys, "refine", [*args, "--out", locked / "out"], "cannot write into")
+
+
+def test_leftovers_of_killed_runs_are_removed_by_the_next_run(capsys, tmp_path, tiny):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    killed, running = tmp_path / ".out.abc123.tmp", tmp_path / ".out.def456.tmp"
+    for path, pid in ((killed, dead.stdout.strip()), (running, str(os.getpid()))):
+        (path / "data").mkdir(parents=True)
+        (path / ".pid").write_text(pid)
+    code, _, err = run(capsys, "refine", "--dataset", tiny, "--events", "door", "--out", tmp_path / "out")
+    assert code == 0, err
+    assert not killed.exists()  # its process is gone
+    assert running.exists()  # its process (this one) is alive: not touched
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.def456.tmp", "out"]
 
 
 # --------------------------------------------------------------------------------------------

@@ -236,6 +236,22 @@ def test_failure_in_the_middle_leaves_nothing(cache, tmp_path, monkeypatch, numb
     assert os.environ["MINARI_DATASETS_PATH"] == str(cache)
 
 
+def test_what_a_killed_import_left_is_removed_by_the_next_one(cache, tmp_path):
+    """A SIGKILLed import leaves its hidden build directory; its process is gone, so the next import removes it."""
+    import subprocess
+    import sys
+
+    path = tiny_h5(tmp_path / "tiny.hdf5", [3] * 4, [2, 5, 8, 11])
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = cache / ".rmrl-import-killed"
+    (left / "tiny").mkdir(parents=True)
+    (left / ".pid").write_text(dead.stdout.strip())
+    import_d4rl(path, "tiny/after-kill-v0")
+    assert not left.exists()
+    assert not [p for p in cache.iterdir() if p.name.startswith(".")]
+    import_d4rl(path, "tiny/after-kill-v0", overwrite=True)
+
+
 def test_interrupt_from_the_progress_callback_leaves_nothing(cache, tmp_path):
     path = tiny_h5(tmp_path / "tiny.hdf5", [3] * 4, [2, 5, 8, 11])
 

@@ -69,7 +69,7 @@ def test_round_trip(tmp_path):
     data = sample_td()
     out = write_refined(tmp_path / "out", data, REPORT)
     assert out == tmp_path / "out"
-    assert sorted(p.name for p in out.iterdir()) == ["data", "report.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".rm_torchrl-refined", "data", "report.json"]
     back, report = read_refined(out)
     assert report == REPORT
     assert json.loads((out / "report.json").read_text()) == REPORT

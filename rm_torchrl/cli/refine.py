@@ -8,7 +8,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from rm_torchrl.data.sources import load_dataset
-from rm_torchrl.data.store import write_refined
+from rm_torchrl.data.store import check_out, write_refined
 from rm_torchrl.errors import RMError, read_yaml
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, run_pipeline
@@ -44,6 +44,9 @@ def load_recipe(path: str) -> dict:
         raise RMError(f"recipe {path}: constraints must be a list of 'a<b' strings")
     data["constraints"] = [tuple(x.strip() for x in c.split("<")) for c in constraints]
     base = Path(path).parent
+    for key in ("dataset", "events", "out"):
+        if key in data and not isinstance(data[key], str):
+            raise RMError(f"recipe {path}: {key} must be a string, got {data[key]!r}")
     for key in ("dataset", "events"):
         value = data.get(key)
         if isinstance(value, str) and Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml"):
@@ -68,8 +71,7 @@ def resolve_options(args) -> dict:
 def run(args) -> int:
     opts = resolve_options(args)
     check_alpha(opts["alpha"])
-    if Path(opts["out"]).exists() and not args.overwrite:
-        raise RMError(f"output directory {opts['out']} already exists; pass --overwrite to replace it")
+    check_out(opts["out"], args.overwrite)  # before the work, not after it
     spec = load_event_spec(opts["events"])
     print(f"loading {opts['dataset']} ...", file=sys.stderr)
     data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])

@@ -17,7 +17,6 @@ import hashlib
 import importlib.metadata
 import os
 import shutil
-import tempfile
 import warnings
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -144,7 +143,9 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
     """
     from minari.dataset.minari_dataset import MinariDataset
 
-    tmp_root = Path(tempfile.mkdtemp(prefix=prefix, dir=cache))
+    from rm_torchrl.data.store import temp_dir
+
+    tmp_root = temp_dir(cache, prefix)  # also removes what killed imports left behind
     old = tmp_root / ".previous"
     made: list[Path] = []
     try:
