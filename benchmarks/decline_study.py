@@ -1,9 +1,10 @@
 """Weight-decay study on door-human-v0: does ours still decline, and which lambda should the recipes use?
 
 Trains ours (``recipes/door-human-v0-ours.yaml``: IQL on the refined data with the RM state, the IQL
-authors' Gaussian actor and cosine actor schedule) with lambda_Q = lambda_pi = lambda for every
-lambda in ``--lambdas`` and every seed in ``--seeds``, then writes the study's table, curves and
-summary. Resumable: run it again and finished runs are skipped, killed ones resumed from their
+authors' Gaussian actor, cosine actor schedule, AntMaze expectile and temperature) with
+lambda_Q = lambda_pi = lambda for every lambda in ``--lambdas`` and every seed in ``--seeds``, plus
+control arms with IQL's Adroit expectile and temperature (flat AWR weights on the RM reward) and
+with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it again and finished runs are skipped, killed ones resumed from their
 checkpoint. The choice rule is fixed before any run: the lambda with the highest mean D4RL score
 over the last five evaluations (steps 42k-50k of 50k), averaged over seeds.
 
@@ -29,35 +30,44 @@ RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
 LAST = 5  # evaluations the choice rule averages
 
 
-def arms(args) -> list[tuple[str, str, str]]:
-    """(label, lambda, actor): every lambda with the recipe's actor, then the control arms."""
-    out = [(f"λ={lam}", lam, "gaussian") for lam in args.lambdas]
-    out += [(f"λ={lam}, tanh_normal actor", lam, "tanh_normal") for lam in args.tanh_normal_lambdas]
+#: Control arm: IQL's Adroit values, with which the AWR weights of the RM reward are flat (behaviour cloning).
+ADROIT_IQL = ["method.expectile=0.7", "method.temperature=0.5"]
+
+
+def arms(args) -> list[tuple[str, str, list[str]]]:
+    """(label, run name, overrides): every lambda with the recipe's values, then the control arms."""
+    out = [(f"λ={lam}", f"door-human-v0-ours-wd{lam}", _decay(lam)) for lam in args.lambdas]
+    out += [(f"λ={lam}, τ=0.7 β=0.5 (IQL Adroit)", f"door-human-v0-ours-beta0.5-wd{lam}", _decay(lam) + ADROIT_IQL)
+            for lam in args.adroit_lambdas]
+    out += [(f"λ={lam}, τ=0.7 β=0.5, tanh_normal actor", f"door-human-v0-ours-beta0.5-wd{lam}-tanhnormal",
+             _decay(lam) + ADROIT_IQL + ["network.actor=tanh_normal"]) for lam in args.tanh_normal_lambdas]
     return out
 
 
-def arm_name(lam: str, actor: str) -> str:
-    return f"door-human-v0-ours-wd{lam}" + ("" if actor == "gaussian" else f"-{actor.replace('_', '')}")
+def _decay(lam: str) -> list[str]:
+    return [f"optim.weight_decay_q={float(lam)!r}", f"optim.weight_decay_pi={float(lam)!r}"]
 
 
 def grid(args) -> list[tuple[str, list[str]]]:
     runs = []
-    for seed in args.seeds:  # seed-major: a partial study covers every arm
-        for _, lam, actor in arms(args):
-            runs.append((str(RECIPE), [f"name={arm_name(lam, actor)}", f"seed={seed}", f"out={args.out}",
-                                       f"optim.weight_decay_q={float(lam)!r}", f"optim.weight_decay_pi={float(lam)!r}",
-                                       f"network.actor={actor}", f"trainer.steps={args.steps}",
-                                       "trainer.checkpoint_every=5000", *args.override]))
+    main_arms = arms(args)[:len(args.lambdas)]
+    # the lambda arms first, then the controls; seed-major in each, so a partial study covers every arm
+    for group in (main_arms, arms(args)[len(args.lambdas):]):
+        for seed in args.seeds:
+            for _, name, overrides in group:
+                runs.append((str(RECIPE), [f"name={name}", f"seed={seed}", f"out={args.out}", *overrides,
+                                           f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
+                                           *args.override]))
     return runs
 
 
 def summarise(args) -> dict:
     """Per arm: every finished run's evaluations and logged scalars."""
     found = {}
-    for label, lam, actor in arms(args):
+    for label, name, _ in arms(args):
         seeds = {}
         for seed in args.seeds:
-            run_dir = Path(args.out) / f"{arm_name(lam, actor)}-seed{seed}"
+            run_dir = Path(args.out) / f"{name}-seed{seed}"
             if not (run_dir / "eval.csv").is_file():
                 continue
             evals = read_eval_csv(run_dir / "eval.csv")
@@ -65,7 +75,7 @@ def summarise(args) -> dict:
                 continue
             seeds[seed] = (run_dir, evals, read_scalars(run_dir))
         if seeds:
-            found[(label, lam, actor)] = seeds
+            found[label] = seeds
     return found
 
 
@@ -78,7 +88,7 @@ def write_results(args, arms: dict) -> None:
     results.mkdir(parents=True, exist_ok=True)
     rows, summary = [], []
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
-    for (label, lam, actor), seeds in arms.items():
+    for label, seeds in arms.items():
         steps = next(iter(seeds.values()))[1]["step"]
         scores = np.stack([e["score"] for _, e, _ in seeds.values()])
         success = np.stack([e["success_rate"] for _, e, _ in seeds.values()])
@@ -86,7 +96,7 @@ def write_results(args, arms: dict) -> None:
         sem = np.stack([e["return_std"] for _, e, _ in seeds.values()]) / np.sqrt(
             np.stack([e["episodes"] for _, e, _ in seeds.values()]))
         mean, std = scores.mean(0), scores.std(0, ddof=1) if len(scores) > 1 else np.zeros(len(steps))
-        line, = axes[0].plot(steps, mean, label=label, linestyle="-" if actor == "gaussian" else "--")
+        line, = axes[0].plot(steps, mean, label=label, linestyle="--" if "β=0.5" in label else "-")
         axes[0].fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
         for key, ax in (("weight_clamped", axes[1]), ("entropy", axes[2])):
             curves = [s[key] for _, _, s in seeds.values() if key in s]
@@ -101,7 +111,7 @@ def write_results(args, arms: dict) -> None:
         for seed, (run_dir, evals, _) in seeds.items():
             shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
             shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-{run_dir.name}.yaml")
-            summary.append({"arm": label, "lambda": float(lam), "actor": actor, "seed": seed, "steps": int(evals["step"][-1]),
+            summary.append({"arm": label, "seed": seed, "steps": int(evals["step"][-1]),
                             "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
                             "last5_score": float(evals["score"][-LAST:].mean()), "mean_score": float(evals["score"].mean()),
                             "peak_score": float(evals["score"].max()), "peak_step": int(evals["step"][np.argmax(evals["score"])]),
@@ -116,7 +126,8 @@ def write_results(args, arms: dict) -> None:
     def cell(values):
         return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
-    best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
+    candidates = [r for r in rows if "β=0.5" not in r[0]]  # the controls are not candidates for the recipe
+    best = max(candidates, key=lambda r: r[3].mean())[0] if candidates else None
     lines = ["| arm (λ = λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
              "success (last 5) | events of 4 (last 5) |", "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
@@ -136,8 +147,10 @@ def main() -> int:
     p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decline-study"))
     p.add_argument("--lambdas", nargs="+", default=["0", "1e-4", "1e-3", "1e-2"])
+    p.add_argument("--adroit-lambdas", nargs="*", default=["0", "1e-4"],
+                   help="control arms with IQL's Adroit expectile and temperature (0.7, 0.5)")
     p.add_argument("--tanh-normal-lambdas", nargs="*", default=["1e-4"],
-                   help="control arms with the previous default actor (tanh-squashed Gaussian)")
+                   help="control arms with IQL's Adroit values and the tanh-squashed Gaussian actor")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=50_000)
     p.add_argument("--jobs", type=int, default=2)

@@ -220,7 +220,7 @@ def load_recipe(path: str | Path, overrides: list[str] = ()) -> Recipe:
     for attr in ("source", "events"):
         value = getattr(recipe.data, attr)
         if Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml") and not Path(value).is_absolute():
-            setattr(recipe.data, attr, os.path.normpath(path.parent / value))
+            setattr(recipe.data, attr, os.path.abspath(path.parent / value))  # a run's recipe.yaml works from anywhere
     validate(recipe)
     return recipe
 
