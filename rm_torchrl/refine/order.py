@@ -136,10 +136,6 @@ class EventOrder(DatasetTransform):
             if a == b:
                 raise RMError(f"order constraint {self._name(a)}<{self._name(b)} names the same event twice")
             pairs.append((a, b))
-        cycle = _cycle(pairs)
-        if cycle:
-            raise RMError("order constraints form a cycle, so no order satisfies them: "
-                          + " < ".join(self._name(k) for k in cycle))
         self.constraints = pairs
         self.order: list[int] = []
         self.score = 0
@@ -165,6 +161,10 @@ class EventOrder(DatasetTransform):
         }
         self.order, self.score = best_event_order(counts.tolist(), self.constraints)
         if self.score == 0:
+            cycle = _cycle(self.constraints)
+            if cycle:
+                raise RMError("every event order scores 0 under the given constraints: they form a cycle, "
+                              "so no order satisfies them: " + " < ".join(self._name(k) for k in cycle))
             sizes = {f"{self._name(a)}->{self._name(b)}": c for (a, b), c in self.group_sizes.items()}
             raise RMError(
                 "every event order scores 0: no order of all events has a non-empty group at each "
