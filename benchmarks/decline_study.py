@@ -5,8 +5,9 @@ authors' Gaussian actor, cosine actor schedule, AntMaze expectile and temperatur
 lambda_Q = lambda_pi = lambda for every lambda in ``--lambdas`` and every seed in ``--seeds``, plus
 control arms with IQL's Adroit expectile and temperature (flat AWR weights on the RM reward) and
 with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it again and finished runs are skipped, killed ones resumed from their
-checkpoint. The choice rule is fixed before any run: the lambda with the highest mean D4RL score
-over the last five evaluations (steps 42k-50k of 50k), averaged over seeds.
+checkpoint. The choice rule is fixed before any run: the arm with the highest mean D4RL score
+over the last five evaluations (steps 42k-50k of 50k), averaged over seeds; the control arms are
+candidates too (the recipe takes their expectile and temperature if one of them wins).
 
     python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
 """
@@ -50,14 +51,11 @@ def _decay(lam: str) -> list[str]:
 
 def grid(args) -> list[tuple[str, list[str]]]:
     runs = []
-    main_arms = arms(args)[:len(args.lambdas)]
-    # the lambda arms first, then the controls; seed-major in each, so a partial study covers every arm
-    for group in (main_arms, arms(args)[len(args.lambdas):]):
-        for seed in args.seeds:
-            for _, name, overrides in group:
-                runs.append((str(RECIPE), [f"name={name}", f"seed={seed}", f"out={args.out}", *overrides,
-                                           f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
-                                           *args.override]))
+    for seed in args.seeds:  # seed-major over every arm: a partial study covers them all
+        for _, name, overrides in arms(args):
+            runs.append((str(RECIPE), [f"name={name}", f"seed={seed}", f"out={args.out}", *overrides,
+                                       f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
+                                       *args.override]))
     return runs
 
 
@@ -126,8 +124,7 @@ def write_results(args, arms: dict) -> None:
     def cell(values):
         return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
-    candidates = [r for r in rows if "β=0.5" not in r[0]]  # the controls are not candidates for the recipe
-    best = max(candidates, key=lambda r: r[3].mean())[0] if candidates else None
+    best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
     lines = ["| arm (λ = λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
              "success (last 5) | events of 4 (last 5) |", "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
