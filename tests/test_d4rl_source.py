@@ -454,3 +454,19 @@ def test_real_kitchen_complete_v0():
     np.testing.assert_array_equal(td["observation"].numpy(), obs[rows])
     np.testing.assert_array_equal(td["next", "observation"].numpy(), obs[rows + 1])
     np.testing.assert_array_equal(td["next", "reward"].numpy()[:, 0], rew[rows].astype(np.float32))
+
+
+def test_a_damaged_gzip_chunk_is_a_one_line_error(tmp_path):
+    path = tmp_path / "damaged.hdf5"
+    with h5py.File(path, "w") as f:
+        for key, shape in (("observations", (2000, 5)), ("actions", (2000, 2))):
+            f.create_dataset(key, data=np.random.default_rng(0).random(shape, np.float32), compression="gzip",
+                             chunks=(500, shape[1]))
+        f["rewards"] = np.zeros(2000, np.float32)
+        f["terminals"] = np.zeros(2000, bool)
+        offset = f["observations"].id.get_chunk_info(1).byte_offset
+    raw = bytearray(path.read_bytes())
+    raw[offset + 50:offset + 150] = b"\0" * 100
+    path.write_bytes(bytes(raw))
+    with pytest.raises(RMError, match=r"cannot read 'observations', the file is damaged \(.*filter returned failure"):
+        load_d4rl_hdf5(path)

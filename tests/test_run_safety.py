@@ -192,3 +192,25 @@ def test_a_signal_checkpoints_and_the_resumed_run_is_bit_identical(tmp_path, dat
     same_parameters(straight / "checkpoint.pt", resumed / "checkpoint.pt")
     logged = [int(line.split(",")[0]) for line in (resumed / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
     assert logged == list(range(10, 1501, 10))
+
+
+def test_an_eval_env_of_another_size_is_a_one_line_error_and_the_run_can_start_again(tmp_path, dataset, capsys):
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandHammer-v1, max_steps: 5, every: 10, episodes: 1}\n")
+    assert main(["train", str(recipe), "trainer.steps=10", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "eval env 'AdroitHandHammer-v1' observes 46 values but the data has 39" in err and "Traceback" not in err
+    assert main(["train", str(recipe), "trainer.steps=10", "eval.env=AdroitHandDoor-v1", "--no-progress"]) == 0
+
+
+# --- other commands ------------------------------------------------------------------------------
+
+def test_rm_graph_into_a_missing_place_and_into_a_closed_pipe(tmp_path, capsys):
+    assert main(["rm-graph", "--events", "door", "--out", str(tmp_path / "missing" / "rm.dot")]) == 2
+    assert "cannot write --out" in capsys.readouterr().err
+    spec = tmp_path / "six.yaml"  # 1,957 RM states: far more text than a pipe holds, so the write must fail
+    spec.write_text("events:\n" + "".join(f"  - {{name: ev{i}, key: observation, index: {i}, op: '>', value: 0}}\n"
+                                          for i in range(6)))
+    shell = f"{sys.executable} -m rm_torchrl.cli.main rm-graph --events {spec} | head -1"
+    done = subprocess.run(["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "digraph EventOrderedRM {"
+    assert done.returncode == 0 and done.stderr == "", done.stderr

@@ -1,6 +1,10 @@
 """``rmrl rm-graph``: the RM of an event spec as Graphviz DOT or Mermaid text."""
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
+from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.rm.diagram import to_dot, to_mermaid
 from rm_torchrl.rm.machine import EventOrderedRM
@@ -10,8 +14,15 @@ def run(args) -> int:
     rm = EventOrderedRM(load_event_spec(args.events).names)
     text = (to_dot if args.format == "dot" else to_mermaid)(rm)
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(text)
+        out = Path(args.out)
+        tmp = out.with_name(f".{out.name}.tmp")
+        try:
+            tmp.write_text(text)
+            os.replace(tmp, out)
+        except OSError as err:
+            if tmp.parent.is_dir():
+                tmp.unlink(missing_ok=True)
+            raise RMError(f"cannot write --out {out}: {err.strerror}") from None
         print(f"wrote the {rm.num_states}-state RM to {args.out}")
     else:
         print(text)

@@ -101,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     except RMError as err:
         print(f"rmrl {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `rmrl rm-graph ... | head`: the reader has what it wanted
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt as err:
         signum = getattr(err, "signum", None)  # the trainer's RunInterrupted: a checkpoint was written
         message = getattr(err, "message", None) or "interrupted; nothing was written"

@@ -16,7 +16,10 @@ _JUMP = 10.0  # a real episode boundary moves the observation this many median s
 def _read(f, name: str, path: Path) -> np.ndarray:
     if name not in f:
         raise RMError(f"{path} is not a D4RL dataset: it has no {name!r} array (found {sorted(f.keys())})")
-    return f[name][()]
+    try:
+        return f[name][()]
+    except (OSError, KeyError, ValueError) as err:  # a corrupted chunk: "filter returned failure" and kin
+        raise RMError(f"{path}: cannot read {name!r}, the file is damaged ({str(err).splitlines()[0][:120]})") from None
 
 
 def _boundaries_consistent(obs: np.ndarray, flags: np.ndarray) -> bool:
@@ -62,7 +65,7 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
         raise RMError(f"{path} is not a readable HDF5 file: {err}") from None
     with f:
         arrays = {key: _read(f, key, path) for key in ("observations", "actions", "rewards", "terminals")}
-        arrays["timeouts"] = f["timeouts"][()] if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
+        arrays["timeouts"] = _read(f, "timeouts", path) if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
     arrays["terminals"] = arrays["terminals"].astype(bool)
     arrays["timeouts"] = arrays["timeouts"].astype(bool)
     obs, actions = arrays["observations"], arrays["actions"]

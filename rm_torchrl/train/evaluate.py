@@ -62,14 +62,15 @@ def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
     if recipe.data.events:
         encoding = recipe.rm.encoding if ENCODING_KEY in data.obs_keys else None
         transforms.append(RMEnvTransform(recipe.data.events, encoding=encoding, encoding_key=ENCODING_KEY))
-    transforms.append(ObservationNorm(loc=data.loc, scale=data.scale, in_keys=["observation"], standard_normal=True))
     env = TransformedEnv(base, Compose(*transforms))
     dim = env.observation_spec["observation"].shape[-1]
-    if dim != data.loc.shape[-1]:
+    if dim != data.loc.shape[-1]:  # before the normalisation, which would fail on the shapes
+        env.close()
         raise RMError(
             f"eval env {recipe.eval.env!r} observes {dim} values but the data has {data.loc.shape[-1]}; "
             "set eval.observation (kitchen-v0 rebuilds the D4RL v0 layout) or another env"
         )
+    env.append_transform(ObservationNorm(loc=data.loc, scale=data.scale, in_keys=["observation"], standard_normal=True))
     return env
 
 
