@@ -204,6 +204,12 @@ def _umask() -> int:
     return mask
 
 
+def test_refine_recipe_entries_of_the_wrong_type(capsys, tmp_path):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("dataset: 5\nevents: door\nout: x\n")
+    assert_error(capsys, "refine", ["refine", "--config", recipe], "dataset must be a string, got 5")
+
+
 def test_output_paths_that_are_refused(capsys, tmp_path, tiny, monkeypatch):
     args = ["refine", "--dataset", tiny, "--events", "door"]
     a_file = tmp_path / "file.txt"

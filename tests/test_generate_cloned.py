@@ -162,3 +162,17 @@ def test_relocate_cloned_from_generated_relocate_human(cache):
     assert data["action"].shape == (800, 30)
     refined, report = refine(data, "relocate", alpha=1.0)
     assert report.groups and all(n > 0 for n in report.groups.values())
+
+
+@needs_door
+def test_demos_of_another_env_are_refused_before_cloning(cache):
+    with pytest.raises(RMError, match="have 39-value observations and 28-value actions, but AdroitHandRelocate-v1 has "
+                                      "39 and 30: they come from another environment"):
+        generate_cloned("relocate-cloned", "rmrl/relocate-from-door-v0", steps=100, bc_steps=10, demos_source=DOOR)
+    assert not [p for p in leftovers(cache) if "relocate-from-door" in p]
+
+
+@pytest.mark.parametrize("noise", [float("nan"), float("inf"), -0.1])
+def test_noise_must_be_finite_and_non_negative(noise):
+    with pytest.raises(RMError, match="--noise must be a finite number >= 0"):
+        generate_cloned("door-cloned", "rmrl/x-v0", steps=10, noise=noise, demos_source=DOOR)

@@ -112,11 +112,24 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("optim.actor_schedule=linear", "optim.actor_schedule must be one of"),
         ("eval.reward=raw", "eval.reward must be one of"),
         ("eval={env: FrankaKitchen-v1, reward: d4rl}", "eval.reward=d4rl needs a dense v1 env"),
+        ("name=../../x", "name must be a plain directory name"),
+        ("name=a/b", "name must be a plain directory name"),
+        ("trainer.threads=-1", "trainer.threads must be >= 0"),
+        ("optim.lr_actor=.nan", "optim.lr_actor must be a finite number"),
     ],
 )
 def test_recipe_validation(tmp_path, dataset, override, message):
     with pytest.raises(RMError, match=message):
         load_recipe(make_recipe(tmp_path, dataset), [override])
+
+
+def test_exponent_floats_are_floats(tmp_path, dataset):
+    """PyYAML reads 1e-3 as a string (YAML 1.1); a float field takes it as the number it is."""
+    path = make_recipe(tmp_path, dataset, "optim: {lr_critic: 3e-4}\n")
+    recipe = load_recipe(path, ["optim.weight_decay_q=1e-3", "optim.lr_actor=2E-4"])
+    assert (recipe.optim.weight_decay_q, recipe.optim.lr_actor, recipe.optim.lr_critic) == (1e-3, 2e-4, 3e-4)
+    with pytest.raises(RMError, match="trainer.steps must be of type int"):
+        load_recipe(path, ["trainer.steps=1e3"])
 
 
 def test_bad_override_and_yaml(tmp_path, dataset):

@@ -1,6 +1,7 @@
 """``rmrl generate``: record scripted demonstrations as a local Minari dataset, atomically, with a progress bar."""
 from __future__ import annotations
 
+import math
 import sys
 
 from tqdm import tqdm
@@ -44,8 +45,8 @@ def run(args) -> int:
 
     from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
 
-    if args.noise is not None and args.noise < 0:
-        raise RMError(f"--noise must be >= 0, got {args.noise}")
+    if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
+        raise RMError(f"--noise must be a finite number >= 0, got {args.noise}")
     from rm_torchrl.generate.cloned import CLONED
 
     if args.generator in CLONED:

@@ -89,6 +89,19 @@ def load_demos(source: str):
     return load_minari(str(source), download=False)
 
 
+def _check_demos_fit(data, source: str, env_id: str) -> None:
+    """Demos recorded in another env (door demos for relocate) cannot be cloned into ``env_id``."""
+    env = make_env(env_id, 10)
+    try:
+        want = (env.observation_space.shape[-1], env.action_space.shape[-1])
+    finally:
+        env.close()
+    got = (data["observation"].shape[-1], data["action"].shape[-1])
+    if got != want:
+        raise RMError(f"the demos in {source} have {got[0]}-value observations and {got[1]}-value actions, but "
+                      f"{env_id} has {want[0]} and {want[1]}: they come from another environment")
+
+
 def demo_episodes(data) -> list[dict]:
     """Split flat transitions into episodes: T+1 observations, T actions, T rewards, terminated flag."""
     episode = data["episode"].numpy()
@@ -297,8 +310,8 @@ def generate_cloned(kind: str, name: str, steps: int = 1_000_000, seed: int = 0,
         raise RMError(f"--workers must be at least 1, got {workers}")
     if bc_steps < 1:
         raise RMError(f"--bc-steps must be at least 1, got {bc_steps}")
-    if noise < 0:
-        raise RMError(f"--noise must be >= 0, got {noise}")
+    if not (np.isfinite(noise) and noise >= 0):
+        raise RMError(f"--noise must be a finite number >= 0, got {noise}")
     if not 0.0 < demo_fraction < 1.0:
         raise RMError(f"demo_fraction must be in (0, 1), got {demo_fraction}")
     cache = _cache_root()
@@ -311,6 +324,7 @@ def generate_cloned(kind: str, name: str, steps: int = 1_000_000, seed: int = 0,
     demos = demo_episodes(data)
     if not demos:
         raise RMError(f"{source} holds no demonstration transitions")
+    _check_demos_fit(data, source, spec.env_id)
 
     # 1. behaviour cloning
     if progress is not None:
