@@ -214,3 +214,17 @@ def test_rm_graph_into_a_missing_place_and_into_a_closed_pipe(tmp_path, capsys):
     done = subprocess.run(["bash", "-o", "pipefail", "-c", shell], capture_output=True, text=True, timeout=120)
     assert done.stdout.strip() == "digraph EventOrderedRM {"
     assert done.returncode == 0 and done.stderr == "", done.stderr
+
+
+def test_sigterm_during_refine_ends_with_one_line_and_leaves_nothing(tmp_path):
+    big = write_d4rl(tmp_path / "big.hdf5", transitions=400_000, episode_length=400)
+    out = tmp_path / "out"
+    proc = spawn("refine", "--dataset", str(big), "--events", "door", "--out", str(out))
+    end = time.time() + 60
+    while "loading" not in (line := proc.stderr.readline()) and time.time() < end:
+        assert line or proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "terminated (SIGTERM); nothing was written" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.hdf5"]

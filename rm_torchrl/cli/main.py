@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 
 # Back large CPU tensors with transparent huge pages: refinement allocates a few big tensors,
 # and first-touch page faults would otherwise cost as much as the work itself.
@@ -92,9 +94,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every command's clean-up runs (temporary outputs are removed)."""
+
+    signum = signal.SIGTERM
+    message = "terminated (SIGTERM); nothing was written"
+
+
+def _terminate(signum, frame):
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     module, _, func = args.run.partition(":")
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)  # the trainer checkpoints on it instead, inside its loop
     try:
         command = getattr(__import__(module, fromlist=[func]), func)
         return command(args) or 0
