@@ -204,6 +204,11 @@ def _umask() -> int:
     return mask
 
 
+def test_a_directory_as_dataset_is_named_as_such(capsys, tmp_path):
+    assert_error(capsys, "refine", ["refine", "--dataset", tmp_path, "--events", "door", "--out", tmp_path / "o"],
+                 "is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari dataset name")
+
+
 def test_refine_recipe_entries_of_the_wrong_type(capsys, tmp_path):
     recipe = tmp_path / "r.yaml"
     recipe.write_text("dataset: 5\nevents: door\nout: x\n")

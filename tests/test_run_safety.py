@@ -228,3 +228,15 @@ def test_sigterm_during_refine_ends_with_one_line_and_leaves_nothing(tmp_path):
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "terminated (SIGTERM); nothing was written" in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big.hdf5"]
+
+
+def test_a_missing_logger_package_leaves_a_run_that_starts_again(tmp_path, dataset, capsys):
+    try:
+        import wandb  # noqa: F401
+        pytest.skip("wandb is installed here")
+    except ImportError:
+        pass
+    recipe = make_recipe(tmp_path, dataset)
+    assert main(["train", str(recipe), "trainer.steps=10", "logger.backend=wandb", "--no-progress"]) == 2
+    assert "logger.backend=wandb needs its package" in capsys.readouterr().err
+    assert main(["train", str(recipe), "trainer.steps=10", "--no-progress"]) == 0

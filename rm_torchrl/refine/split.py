@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.base import DatasetTransform, take_rows
-from rm_torchrl.refine.segments import episode_runs, rows_of_runs
+from rm_torchrl.segments import episode_runs, rows_of_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 

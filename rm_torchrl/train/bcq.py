@@ -38,6 +38,8 @@ from torch import nn
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, distance_loss
 
+from rm_torchrl.train.method import Method
+
 __all__ = [
     "BCQVAE",
     "BCQPerturbation",
@@ -659,7 +661,7 @@ def make_bcq_optimizers(
 
 
 def build_bcq(recipe, obs_keys: list, obs_dim: int, action_dim: int):
-    """BCQ for the recipe trainer (``rm_torchrl.train.losses.build_method``): a ``Method``.
+    """BCQ for the recipe trainer (``rm_torchrl.train.losses.build_method``): a :class:`Method`.
 
     Everything comes from the recipe: ``network.hidden`` for the perturbation model and the
     critics, ``method.bcq_vae_hidden`` for the VAE, ``optim.lr_value`` / ``lr_actor`` /
@@ -668,8 +670,6 @@ def build_bcq(recipe, obs_keys: list, obs_dim: int, action_dim: int):
     Actions lie in ``[-1, 1]``; BCQ uses no weight decay.
     """
     from torchrl.objectives import SoftUpdate
-
-    from rm_torchrl.train.losses import Method
 
     loss = make_bcq_loss(
         obs_dim, action_dim, observation_keys=list(obs_keys), max_action=1.0,

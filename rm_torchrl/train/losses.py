@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
@@ -12,6 +11,7 @@ from torchrl.objectives import CQLLoss, LossModule, SoftUpdate
 
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.iql import SharedForwardIQLLoss
+from rm_torchrl.train.method import Method
 from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 
 
@@ -31,19 +31,6 @@ class BCLoss(LossModule):
             dist = self.actor_network.get_dist(tensordict)
         action = tensordict.get("action").clamp(-1 + 1e-5, 1 - 1e-5)
         return TensorDict({"loss_actor": -dist.log_prob(action).mean()})
-
-
-@dataclass
-class Method:
-    loss: LossModule
-    optimizers: list  # stepped together
-    policy: TensorDictModule  # acts from the observation keys at evaluation
-    target_updater: SoftUpdate | None
-    compiled: object = None  # torch.compile(loss), used in its place by the trainer when set
-    schedule: "ActorSchedule | None" = None  # called with each update's step number before it
-
-    def compute_loss(self, batch: TensorDictBase) -> TensorDictBase:
-        return (self.loss if self.compiled is None else self.compiled)(batch)
 
 
 class ActorSchedule:
