@@ -180,7 +180,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         (run_dir / "refine_report.json").write_text(json.dumps(data.report, indent=2) + "\n")
 
     # --- resume -----------------------------------------------------------------------------
-    start = 0
+    start, elapsed_before = 0, 0.0
     if state is not None:
         method.loss.load_state_dict(state["loss"])
         for opt, opt_state in zip(method.optimizers, state["optimizers"]):
@@ -188,6 +188,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
         start = state["step"]
+        elapsed_before = float(state.get("elapsed_seconds", 0.0))
         _trim_history(run_dir, start)
     logger = _make_logger(recipe, run_dir)
     eval_csv = run_dir / "eval.csv"
@@ -204,6 +205,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
             "obs_loc": data.loc,
             "obs_scale": data.scale,
             "recipe": recipe.to_dict(),
+            "elapsed_seconds": elapsed_before + time.perf_counter() - started,  # machine time, across resumes
         })
 
     def evaluate(step: int) -> dict:

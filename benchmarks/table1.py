@@ -1,0 +1,176 @@
+"""The paper's Table 1 on this machine: every dataset x method x seed, resumable, with its report.
+
+    python benchmarks/table1.py setup             # generate the five stand-in datasets (skips those present)
+    python benchmarks/table1.py run --jobs 2      # the grid; run it again to skip finished runs, resume killed ones
+    python benchmarks/table1.py report            # benchmarks/results/table1/
+
+Datasets: the real D4RL ``door-human-v0.hdf5`` and the five generated at full size (``rmrl generate``,
+as ``benchmarks/generated_datasets.py`` sizes them), in the Minari cache (``MINARI_DATASETS_PATH``).
+Methods: ours, IQL and BC, 3 seeds, 50k gradient steps; CQL and BCQ (17x and 8x an IQL update on
+this CPU) at 10k steps x 3 seeds on door-human-v0 only, labelled with their budget. Every run
+evaluates every 2000 steps over 10 episodes with D4RL's reward. Run directories are
+``OUT/<dataset>-<method>-seed<k>/`` (``--out``, default ``runs``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from generated_datasets import DATASETS as GENERATED, rmrl  # noqa: E402
+
+from rm_torchrl.cli.train import run_grid  # noqa: E402
+from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
+from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
+
+#: dataset -> (recipe prefix in recipes/, data.source override: a generated Minari id, or None for the recipe's)
+DATASETS = {
+    "door-human-v0": ("door-human-v0", None),
+    "kitchen-partial": ("kitchen-partial", "rmrl/kitchen-partial-v0"),
+    "kitchen-mixed": ("kitchen-mixed", "rmrl/kitchen-mixed-v0"),
+    "door-cloned": ("door-cloned", "rmrl/door-cloned-v0"),
+    "relocate-human": ("relocate-human", "rmrl/relocate-human-v0"),
+    "relocate-cloned": ("relocate-cloned", "rmrl/relocate-cloned-v0"),
+}
+#: method -> (gradient steps, datasets it runs on)
+BUDGETS = {"ours": (50_000, list(DATASETS)), "iql": (50_000, list(DATASETS)), "bc": (50_000, list(DATASETS)),
+           "cql": (10_000, ["door-human-v0"]), "bcq": (10_000, ["door-human-v0"])}
+SEEDS = (0, 1, 2)
+LABELS = {"ours": "Ours", "iql": "IQL", "bc": "BC", "cql": "CQL", "bcq": "BCQ"}
+#: the paper's Table 1 (average D4RL return over 3 seeds after 0.5M steps) and Table 2 (transitions)
+PAPER = {
+    "kitchen-partial": {"BC": 1.31, "BCQ": 0.46, "IQL": 1.60, "CQL": 0.92, "Ours": 3.24},
+    "kitchen-mixed": {"BC": 1.61, "BCQ": 0.62, "IQL": 1.68, "CQL": 0.53, "Ours": 3.03},
+    "door-human-v0": {"BC": -20.4, "BCQ": -54.8, "IQL": 74.8, "CQL": 75.8, "Ours": 439.5},
+    "door-cloned": {"BC": -56.1, "BCQ": -57.5, "IQL": 20.1, "CQL": -56.5, "Ours": 415.9},
+    "relocate-human": {"BC": 184.2, "BCQ": -25.1, "IQL": 288.6, "CQL": 78.1, "Ours": 633.3},
+    "relocate-cloned": {"BC": -51.6, "BCQ": -56.0, "IQL": -52.4, "CQL": -30.1, "Ours": 492.4},
+}
+PAPER_T2 = {
+    "kitchen-partial": (136345, 98690, 50114, 22682), "kitchen-mixed": (136345, 83792, 49855, 44298),
+    "door-human-v0": (6704, 5001, 5001, 2261), "door-cloned": (995643, 372086, 372086, 167397),
+    "relocate-human": (9917, 7211, 7211, 7211), "relocate-cloned": (996242, 364207, 364207, 364207),
+}
+
+
+def grid(out: str, seeds) -> list[tuple[str, list[str]]]:
+    """Seed-major, then dataset, then method: a partial sweep covers every cell with its first seeds."""
+    runs = []
+    for seed in seeds:
+        for dataset, (prefix, source) in DATASETS.items():
+            for method, (steps, where) in BUDGETS.items():
+                if dataset in where:
+                    runs.append((str(ROOT / "recipes" / f"{prefix}-{method}.yaml"), [
+                        f"name={dataset}-{method}", f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
+                        "trainer.checkpoint_every=5000", *([f"data.source={source}"] if source else [])]))
+    return runs
+
+
+def setup(args) -> None:
+    import minari
+
+    present = set(minari.list_local_datasets())
+    for name, _, _, size in GENERATED:
+        dataset_id = f"rmrl/{name}-v0"
+        if dataset_id in present:
+            print(f"{dataset_id}: present", file=sys.stderr)
+            continue
+        flags = [x for key, value in size.items() for x in (f"--{key}", str(value))]
+        if name == "relocate-cloned":
+            flags += ["--demos", "rmrl/relocate-human-v0"]
+        rmrl("generate", name, "--out-name", dataset_id, *flags, "--seed", "0", "--workers", str(args.jobs))
+
+
+def _cell(values) -> str:
+    values = np.asarray(values, dtype=float)
+    return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
+
+
+def report(args) -> None:
+    results = Path(args.results)
+    skipped: list[str] = []
+    runs = load_runs([args.out], skipped=skipped)
+    groups = group_runs(runs)
+    (results / "runs").mkdir(parents=True, exist_ok=True)
+    summary = []
+    for run in runs:
+        dest = results / "runs" / run.path.name
+        dest.mkdir(exist_ok=True)
+        shutil.copyfile(run.path / "eval.csv", dest / "eval.csv")
+        shutil.copyfile(run.path / "recipe.yaml", dest / "recipe.yaml")
+        elapsed = None
+        ckpt = run.path / "checkpoint.pt"
+        if ckpt.is_file():
+            from rm_torchrl.train.rundir import load_checkpoint
+
+            elapsed = load_checkpoint(ckpt).get("elapsed_seconds")
+        summary.append({"dataset": run.dataset, "method": run.method, "seed": run.seed, "steps": run.final_step,
+                        "eval_episodes": run.episodes, "final_score": float(run.evals["score"][-1]),
+                        "mean_score": float(run.evals["score"].mean()),
+                        "final_return": float(run.evals["return_mean"][-1]), "reward": run.reward,
+                        "final_success": float(run.evals["success_rate"][-1]),
+                        "final_events": float(run.evals["events_mean"][-1]),
+                        "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
+    (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    lines = ["| dataset | method | steps × seeds | final score | mean score over evaluations | final D4RL return | "
+             "paper's return (0.5M steps) | success (final) | events reached (final) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for g in groups:
+        rows = [s for s in summary if s["dataset"] == g.dataset and s["method"] == g.method]
+        steps = sorted({s["steps"] for s in rows})
+        paper = PAPER.get(g.dataset, {}).get(g.method)
+        lines.append(f"| {g.dataset} | {g.method} | {'/'.join(f'{s // 1000}k' for s in steps)} × {len(rows)} | "
+                     f"{_cell([s['final_score'] for s in rows])} | {_cell([s['mean_score'] for s in rows])} | "
+                     f"{_cell([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
+                     f"{np.mean([s['final_success'] for s in rows]):.0%} | {np.mean([s['final_events'] for s in rows]):.2f} |")
+    t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
+          "|---|---|---|---|---|---|"]
+    for dataset in DATASETS:
+        ours = next((r for r in runs if r.dataset == dataset and r.stages), None)
+        if ours:
+            s = ours.stages
+            t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
+                      + " / ".join(f"{v:,}" for v in PAPER_T2[dataset]) + " |")
+    plot_learning_curves(groups, results / "curves.png")
+    hours = sum(s["machine_seconds"] or 0 for s in summary) / 3600
+    text = ["# Table 1 on this machine", "",
+            f"{len(runs)} runs; evaluation every 2000 steps over 10 episodes; score = D4RL-normalised return "
+            f"({', '.join(sorted({r.reward for r in runs}))} rewards); mean ± sample std over seeds. "
+            f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h.", "",
+            *lines, "", "## Dataset sizes after each refinement stage (Table 2)", "", *t2, "",
+            "![learning curves](curves.png)", "", "## Commands", "", "```bash",
+            "python benchmarks/table1.py setup", "python benchmarks/table1.py run --jobs 2",
+            "python benchmarks/table1.py report", "```", ""]
+    if skipped:
+        text += ["## Runs left out", "", *(f"- {line}" for line in skipped), ""]
+    (results / "results.md").write_text("\n".join(text))
+    print("\n".join(lines))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("command", choices=("setup", "run", "report"))
+    p.add_argument("--out", default="runs", help="run directories (not committed)")
+    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "table1"))
+    p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    p.add_argument("--jobs", type=int, default=2)
+    args = p.parse_args()
+    if args.command == "setup":
+        setup(args)
+    elif args.command == "run":
+        run_grid(grid(args.out, args.seeds), args.jobs)
+    else:
+        report(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
