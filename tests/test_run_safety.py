@@ -160,8 +160,8 @@ def test_a_second_process_on_the_same_run_is_refused(tmp_path, dataset):
         wait_for(tmp_path / "runs" / "tiny-seed0" / "logs" / "scalars" / "loss_actor.csv", first)
         second = spawn("train", str(recipe), "trainer.steps=100000", "resume=true", "--no-progress")
         _, err = second.communicate(timeout=120)
-        assert second.returncode == 2
-        assert f"is in use by process {first.pid}" in err and "Traceback" not in err
+        assert second.returncode == 2, err
+        assert f"is in use by process {first.pid}" in err and "Traceback" not in err, err
     finally:
         first.kill()
         first.wait()

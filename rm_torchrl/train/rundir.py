@@ -11,6 +11,7 @@ import fcntl
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import torch
@@ -131,6 +132,8 @@ def open_run(recipe) -> dict | None:
         path = run_dir / name
         if name != LOCK:
             shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+    if recipe.resume:
+        print(f"resume=true, but {run_dir} holds no checkpoint yet: starting from step 0", file=sys.stderr)
     return None
 
 
