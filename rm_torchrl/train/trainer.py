@@ -132,6 +132,8 @@ def _first_step(method, terms, batch):
         return gradient_step(method, terms, batch)
     try:
         return gradient_step(method, terms, batch)
+    except NonFinite:
+        raise
     except Exception as err:  # e.g. no C++ compiler: eager training is slower, not different; real errors recur
         method.compiled = None
         tqdm.write(f"warning: torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
