@@ -59,9 +59,12 @@ def read_scalar(run_dir: Path, name: str) -> list[float]:
     return [float(v) for _, v in csv.reader((run_dir / "logs" / "scalars" / f"{name}.csv").open())]
 
 
-@pytest.mark.parametrize("method,term", [("iql", "loss_qvalue"), ("bc", "loss_actor"), ("cql", "loss_qvalue"), ("bcq", "loss_vae")])
-def test_losses_go_down(tmp_path, dataset, method, term):
-    recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={method}", "trainer.steps=200"])
+@pytest.mark.parametrize("method,term,actor", [("iql", "loss_qvalue", "tanh_normal"), ("iql", "loss_actor", "gaussian"),
+                                               ("bc", "loss_actor", "tanh_normal"), ("bc", "loss_actor", "gaussian"),
+                                               ("cql", "loss_qvalue", "tanh_normal"), ("bcq", "loss_vae", "tanh_normal")])
+def test_losses_go_down(tmp_path, dataset, method, term, actor):
+    recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={method}", "trainer.steps=200",
+                                                          f"network.actor={actor}"])
     run_dir = train(recipe, progress=False)
     values = read_scalar(run_dir, term)
     assert len(values) == 10
