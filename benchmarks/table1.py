@@ -2,6 +2,7 @@
 
     python benchmarks/table1.py setup             # generate the five stand-in datasets (skips those present)
     python benchmarks/table1.py run --jobs 2      # the grid; run it again to skip finished runs, resume killed ones
+                                                  # (runs committed under the results in earlier sessions are skipped)
     python benchmarks/table1.py report            # benchmarks/results/table1/
 
 Datasets: the real D4RL ``door-human-v0.hdf5`` and the five generated at full size (``rmrl generate``,
@@ -61,17 +62,38 @@ PAPER_T2 = {
 }
 
 
-def grid(out: str, seeds) -> list[tuple[str, list[str]]]:
+def grid(out: str, seeds, datasets=None, methods=None) -> list[tuple[str, list[str]]]:
     """Seed-major, then dataset, then method: a partial sweep covers every cell with its first seeds."""
     runs = []
     for seed in seeds:
         for dataset, (prefix, source) in DATASETS.items():
             for method, (steps, where) in BUDGETS.items():
-                if dataset in where:
+                if dataset in where and dataset in (datasets or DATASETS) and method in (methods or BUDGETS):
                     runs.append((str(ROOT / "recipes" / f"{prefix}-{method}.yaml"), [
                         f"name={dataset}-{method}", f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
                         "trainer.checkpoint_every=5000", *([f"data.source={source}"] if source else [])]))
     return runs
+
+
+def committed(results: Path, name: str, steps: int) -> bool:
+    """Whether ``results/runs/NAME`` holds a finished run: a later session skips it (run directories are not kept)."""
+    csv = results / "runs" / name / "eval.csv"
+    if not csv.is_file():
+        return False
+    rows = [line.split(",")[0] for line in csv.read_text().splitlines()[1:] if line.strip()]
+    return bool(rows) and int(float(rows[-1])) >= steps
+
+
+def run(args) -> None:
+    todo = []
+    for path, overrides in grid(args.out, args.seeds, args.datasets, args.methods):
+        values = dict(o.split("=", 1) for o in overrides)
+        if committed(Path(args.results), f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
+            continue
+        todo.append((path, overrides))
+    print(f"{len(todo)} runs to do or continue ({len(grid(args.out, args.seeds, args.datasets, args.methods)) - len(todo)}"
+          " finished in the committed results)", file=sys.stderr)
+    run_grid(todo, args.jobs)
 
 
 def setup(args) -> None:
@@ -97,21 +119,29 @@ def _cell(values) -> str:
 def report(args) -> None:
     results = Path(args.results)
     skipped: list[str] = []
-    runs = load_runs([args.out], skipped=skipped)
+    # this session's run directories, and the committed copies of runs finished in earlier sessions
+    fresh = {p.name for p in Path(args.out).iterdir()} if Path(args.out).is_dir() else set()
+    earlier = [p for p in sorted((results / "runs").glob("*")) if p.is_dir() and p.name not in fresh]
+    runs = load_runs([p for p in [Path(args.out), *earlier] if p.exists()], skipped=skipped)
     groups = group_runs(runs)
     (results / "runs").mkdir(parents=True, exist_ok=True)
     summary = []
     for run in runs:
         dest = results / "runs" / run.path.name
-        dest.mkdir(exist_ok=True)
-        shutil.copyfile(run.path / "eval.csv", dest / "eval.csv")
-        shutil.copyfile(run.path / "recipe.yaml", dest / "recipe.yaml")
         elapsed = None
-        ckpt = run.path / "checkpoint.pt"
-        if ckpt.is_file():
-            from rm_torchrl.train.rundir import load_checkpoint
+        if dest.resolve() != run.path.resolve():
+            dest.mkdir(exist_ok=True)
+            for name in ("eval.csv", "recipe.yaml", "refine_report.json"):
+                if (run.path / name).is_file():
+                    shutil.copyfile(run.path / name, dest / name)
+            ckpt = run.path / "checkpoint.pt"
+            if ckpt.is_file():
+                from rm_torchrl.train.rundir import load_checkpoint
 
-            elapsed = load_checkpoint(ckpt).get("elapsed_seconds")
+                elapsed = load_checkpoint(ckpt).get("elapsed_seconds")
+                (dest / "machine_seconds").write_text(f"{float(elapsed):.1f}\n")
+        elif (dest / "machine_seconds").is_file():
+            elapsed = float((dest / "machine_seconds").read_text())
         summary.append({"dataset": run.dataset, "method": run.method, "seed": run.seed, "steps": run.final_step,
                         "eval_episodes": run.episodes, "final_score": float(run.evals["score"][-1]),
                         "mean_score": float(run.evals["score"].mean()),
@@ -162,11 +192,13 @@ def main() -> int:
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "table1"))
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--datasets", nargs="+", choices=list(DATASETS), help="only these datasets (default: all)")
+    p.add_argument("--methods", nargs="+", choices=list(BUDGETS), help="only these methods (default: all)")
     args = p.parse_args()
     if args.command == "setup":
         setup(args)
     elif args.command == "run":
-        run_grid(grid(args.out, args.seeds), args.jobs)
+        run(args)
     else:
         report(args)
     return 0
