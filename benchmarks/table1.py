@@ -90,7 +90,7 @@ def run(args) -> None:
         values = dict(o.split("=", 1) for o in overrides)
         if committed(Path(args.results), f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
             continue
-        todo.append((path, overrides))
+        todo.append((path, overrides + args.override))
     print(f"{len(todo)} runs to do or continue ({len(grid(args.out, args.seeds, args.datasets, args.methods)) - len(todo)}"
           " finished in the committed results)", file=sys.stderr)
     run_grid(todo, args.jobs)
@@ -193,6 +193,8 @@ def main() -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--datasets", nargs="+", choices=list(DATASETS), help="only these datasets (default: all)")
+    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
+                   help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
     p.add_argument("--methods", nargs="+", choices=list(BUDGETS), help="only these methods (default: all)")
     args = p.parse_args()
     if args.command == "setup":
