@@ -4,10 +4,12 @@ Trains ours (``recipes/door-human-v0-ours.yaml``: IQL on the refined data with t
 authors' Gaussian actor, cosine actor schedule, AntMaze expectile and temperature) with
 lambda_Q = lambda_pi = lambda for every lambda in ``--lambdas`` and every seed in ``--seeds``, plus
 control arms with IQL's Adroit expectile and temperature (flat AWR weights on the RM reward) and
-with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it again and finished runs are skipped, killed ones resumed from their
-checkpoint. The choice rule is fixed before any run: the arm with the highest mean D4RL score
-over the last five evaluations (steps 42k-50k of 50k), averaged over seeds; the control arms are
-candidates too (the recipe takes their expectile and temperature if one of them wins).
+with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it
+again and finished runs are skipped (also those whose results an earlier session committed), killed
+ones resumed from their checkpoint. The choice rule is fixed before any run: the arm with the
+highest mean D4RL score over the last five evaluations (steps 42k-50k of 50k), averaged over
+seeds; the control arms are candidates too (the recipe takes their expectile and temperature if
+one of them wins).
 
     python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
 """
@@ -59,19 +61,33 @@ def grid(args) -> list[tuple[str, list[str]]]:
     return runs
 
 
+#: The logged scalars kept with the results (the curves' diagnostic panels), per run.
+KEPT_SCALARS = ("entropy", "weight_clamped", "advantage_mean", "value_mean", "loss_actor", "loss_qvalue", "loss_value")
+
+
+def finished(args, run: str) -> tuple[dict, dict] | None:
+    """(evaluations, scalars) of a run that reached ``--steps``: from its run directory, or else from the
+    copy committed with the results by an earlier session (run directories do not outlive a session)."""
+    run_dir, kept = Path(args.out) / run, Path(args.results)
+    if (run_dir / "eval.csv").is_file():
+        evals, scalars = read_eval_csv(run_dir / "eval.csv"), read_scalars(run_dir)
+    elif (kept / f"eval-{run}.csv").is_file():
+        evals = read_eval_csv(kept / f"eval-{run}.csv")
+        scalars = {p.stem: np.loadtxt(p, delimiter=",", ndmin=2) for p in sorted((kept / f"scalars-{run}").glob("*.csv"))}
+    else:
+        return None
+    return (evals, scalars) if len(evals["step"]) and int(evals["step"][-1]) >= args.steps else None
+
+
 def summarise(args) -> dict:
     """Per arm: every finished run's evaluations and logged scalars."""
     found = {}
     for label, name, _ in arms(args):
         seeds = {}
         for seed in args.seeds:
-            run_dir = Path(args.out) / f"{name}-seed{seed}"
-            if not (run_dir / "eval.csv").is_file():
-                continue
-            evals = read_eval_csv(run_dir / "eval.csv")
-            if len(evals["step"]) == 0 or int(evals["step"][-1]) < args.steps:
-                continue
-            seeds[seed] = (run_dir, evals, read_scalars(run_dir))
+            done = finished(args, f"{name}-seed{seed}")
+            if done:
+                seeds[seed] = (Path(args.out) / f"{name}-seed{seed}", *done)
         if seeds:
             found[label] = seeds
     return found
@@ -106,9 +122,15 @@ def write_results(args, arms: dict) -> None:
         peak = scores.max(1)
         rows.append((label, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -LAST:].mean(1),
                      events[:, -LAST:].mean(1), float(np.median(sem)) * 100 / (2880.5693 + 56.5128)))
-        for seed, (run_dir, evals, _) in seeds.items():
-            shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
-            shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-{run_dir.name}.yaml")
+        for seed, (run_dir, evals, scalars) in seeds.items():
+            if (run_dir / "eval.csv").is_file():
+                shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
+                shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-{run_dir.name}.yaml")
+                (results / f"scalars-{run_dir.name}").mkdir(exist_ok=True)
+                for key in KEPT_SCALARS:
+                    if (run_dir / "logs" / "scalars" / f"{key}.csv").is_file():
+                        shutil.copyfile(run_dir / "logs" / "scalars" / f"{key}.csv",
+                                        results / f"scalars-{run_dir.name}" / f"{key}.csv")
             summary.append({"arm": label, "seed": seed, "steps": int(evals["step"][-1]),
                             "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
                             "last5_score": float(evals["score"][-LAST:].mean()), "mean_score": float(evals["score"].mean()),
@@ -156,7 +178,9 @@ def main() -> int:
                    help="an extra recipe override for every run (repeatable)")
     args = p.parse_args()
     if not args.report_only:
-        run_grid(grid(args), args.jobs)
+        todo = [(path, o) for path, o in grid(args)
+                if not finished(args, f"{o[0].split('=', 1)[1]}-seed{o[1].split('=', 1)[1]}")]
+        run_grid(todo, args.jobs)
     write_results(args, summarise(args))
     return 0
 
