@@ -79,6 +79,12 @@ def finished(args, run: str) -> tuple[dict, dict] | None:
     return (evals, scalars) if len(evals["step"]) and int(evals["step"][-1]) >= args.steps else None
 
 
+def run_name(overrides: list[str]) -> str:
+    """The run directory's name (``NAME-seedK``) that a run's overrides give."""
+    values = dict(o.split("=", 1) for o in overrides)
+    return f"{values['name']}-seed{values['seed']}"
+
+
 def summarise(args) -> dict:
     """Per arm: every finished run's evaluations and logged scalars."""
     found = {}
@@ -178,8 +184,7 @@ def main() -> int:
                    help="an extra recipe override for every run (repeatable)")
     args = p.parse_args()
     if not args.report_only:
-        todo = [(path, o) for path, o in grid(args)
-                if not finished(args, f"{o[0].split('=', 1)[1]}-seed{o[1].split('=', 1)[1]}")]
+        todo = [(path, o) for path, o in grid(args) if not finished(args, run_name(o))]
         run_grid(todo, args.jobs)
     write_results(args, summarise(args))
     return 0

@@ -30,7 +30,7 @@ from generated_datasets import DATASETS as GENERATED, rmrl  # noqa: E402
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
-from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
+from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
 
 #: dataset -> (recipe prefix in recipes/, data.source override: a generated Minari id, or None for the recipe's)
 DATASETS = {
@@ -80,19 +80,18 @@ def committed(results: Path, name: str, steps: int) -> bool:
     csv = results / "runs" / name / "eval.csv"
     if not csv.is_file():
         return False
-    rows = [line.split(",")[0] for line in csv.read_text().splitlines()[1:] if line.strip()]
-    return bool(rows) and int(float(rows[-1])) >= steps
+    steps_done = read_eval_csv(csv)["step"]
+    return len(steps_done) > 0 and int(steps_done[-1]) >= steps
 
 
 def run(args) -> None:
-    todo = []
-    for path, overrides in grid(args.out, args.seeds, args.datasets, args.methods):
+    todo, cells = [], grid(args.out, args.seeds, args.datasets, args.methods)
+    for path, overrides in cells:
         values = dict(o.split("=", 1) for o in overrides)
-        if committed(Path(args.results), f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
-            continue
-        todo.append((path, overrides + args.override))
-    print(f"{len(todo)} runs to do or continue ({len(grid(args.out, args.seeds, args.datasets, args.methods)) - len(todo)}"
-          " finished in the committed results)", file=sys.stderr)
+        if not committed(Path(args.results), f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
+            todo.append((path, overrides + args.override))
+    print(f"{len(todo)} runs to do or continue ({len(cells) - len(todo)} finished in the committed results)",
+          file=sys.stderr)
     run_grid(todo, args.jobs)
 
 

@@ -257,3 +257,21 @@ def test_training_on_a_dict_observation_dataset(minari_cache, tmp_path):
     state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
     assert state["step"] == 5
     assert state["obs_loc"].shape == (2,)  # the 2-dim 'observation' entry of the dict
+
+
+@pytest.mark.parametrize("key", ["rewards", "actions"])
+def test_nan_in_a_minari_dataset_is_refused(minari_cache, key):
+    import h5py
+
+    from rm_torchrl.data import load_dataset
+
+    _write_dataset("tiny/nan-v0")
+    (path,) = minari_cache.rglob("main_data.hdf5")
+    with h5py.File(path, "r+") as f:
+        column = f["episode_0"][key]
+        values = column[()]
+        values[1] = np.nan
+        column[...] = values
+    name = {"rewards": "next/reward", "actions": "action"}[key]
+    with pytest.raises(RMError, match=rf"tiny/nan-v0: {name} holds NaN or inf in 1 transition\(s\), first at \[1\]"):
+        load_dataset("tiny/nan-v0")

@@ -13,7 +13,8 @@ def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
     """``*.hdf5`` / ``*.h5`` D4RL files, ``minari:<dataset id>`` or a local Minari dataset name.
 
     Every floating-point entry (observations, actions, rewards) must be finite: one NaN would
-    otherwise train to NaN networks that still report a score.
+    otherwise train to NaN networks that still report a score. D4RL files are checked as they are
+    read (``read_d4rl_arrays``, which names the file's rows); Minari datasets here.
     """
     if not source:
         raise RMError("no dataset given")
@@ -27,7 +28,7 @@ def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
     elif Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
         from rm_torchrl.data.d4rl import load_d4rl_hdf5
 
-        td = load_d4rl_hdf5(source, episode_ends=episode_ends)
+        return load_d4rl_hdf5(source, episode_ends=episode_ends)
     else:
         from rm_torchrl.data.minari import load_minari
 

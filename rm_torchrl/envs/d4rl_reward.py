@@ -80,6 +80,3 @@ class D4RLReward(Transform):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         self._step(tensordict, tensordict.get("next"))
         return tensordict
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        return tensordict_reset

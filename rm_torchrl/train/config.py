@@ -20,6 +20,7 @@ import yaml
 from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 
 METHODS = ("iql", "bc", "cql", "bcq")
+ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.train.networks.make_actor
 
 
 @dataclass
@@ -131,7 +132,7 @@ _CHOICES = {
     "method.name": METHODS,
     "optim.decay": ("l2", "decoupled"),
     "optim.actor_schedule": ("constant", "cosine"),
-    "network.actor": ("tanh_normal", "gaussian"),
+    "network.actor": ACTORS,
     "eval.reward": ("auto", "d4rl", "env"),
     "eval.observation": ("flat", "kitchen-v0"),
     "eval.score": ("", "door", "relocate", "kitchen"),

@@ -11,8 +11,7 @@ from torch.nn import functional as F
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.modules.distributions import IndependentNormal
 
-#: What the actor's distribution is (``network.actor``).
-ACTORS = ("tanh_normal", "gaussian")
+from rm_torchrl.train.config import ACTORS
 
 
 class ConcatMLP(nn.Module):
