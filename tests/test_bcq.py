@@ -407,10 +407,10 @@ def test_bad_arguments():
 
 
 def test_recipe_build_method():
-    from rm_torchrl.train.config import MethodConfig, Recipe
-    from rm_torchrl.train.losses import LOSS_TERMS, build_method
+    from rm_torchrl.train.config import BCQConfig, MethodConfig, Recipe
+    from rm_torchrl.train.methods import METHODS, build_method
 
-    recipe = Recipe(method=MethodConfig(name="bcq", bcq_lambda=0.5, bcq_phi=0.1, bcq_vae_hidden=[32, 32]))
+    recipe = Recipe(method=MethodConfig(name="bcq", bcq=BCQConfig(lmbda=0.5, phi=0.1, vae_hidden=[32, 32])))
     recipe.trainer.gamma = 0.95
     recipe.network.hidden = [24, 16]
     recipe.optim.lr_actor, recipe.optim.lr_critic, recipe.optim.lr_value = 1e-3, 2e-3, 3e-3
@@ -426,7 +426,7 @@ def test_recipe_build_method():
     assert widths_of[:2] == [24, 16], widths_of
     td = make_batch(widths, batch=16)
     out = loss(td)
-    sum(out[t] for t in LOSS_TERMS["bcq"]).backward()
+    sum(out[t] for t in METHODS["bcq"].terms).backward()
     for opt in method.optimizers:
         opt.step()
     method.target_updater.step()

@@ -71,7 +71,7 @@ def test_nan_in_the_data_is_refused_by_train_refine_and_import(tmp_path, dataset
     assert not any(cache.rglob("bad-v0*"))
 
 
-@pytest.mark.parametrize("override", ["optim.lr_actor=.nan", "method.temperature=.inf", "trainer.tau=-.inf"])
+@pytest.mark.parametrize("override", ["optim.lr_actor=nan", "method.iql.temperature=inf", "trainer.tau=-inf"])
 def test_non_finite_recipe_values_are_refused(tmp_path, dataset, override):
     with pytest.raises(RMError, match=rf"{override.split('=')[0]} must be a finite number"):
         load_recipe(make_recipe(tmp_path, dataset), [override])

@@ -56,11 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of standard output")
     p.set_defaults(run="rm_torchrl.cli.graph:run")
 
-    p = sub.add_parser("train", help="train offline from a recipe (refine, IQL + weight decay, online eval)")
-    p.add_argument("recipe", help="a recipe YAML (recipes/*.yaml)")
-    p.add_argument("overrides", nargs="*", help="key.sub=value overrides, e.g. trainer.steps=2000 seed=3")
-    p.add_argument("-m", "--multirun", action="store_true", help="run the grid of comma-separated overrides")
-    p.add_argument("--jobs", type=int, default=2, help="parallel runs with --multirun (default: 2 cores)")
+    p = sub.add_parser("train", help="train offline: dataset=NAME method=NAME, or a recipe file (Hydra overrides)",
+                       description="rmrl train [RECIPE.yaml] [key=value ...]: without RECIPE, recipes/train.yaml "
+                                   "composes dataset=NAME (recipes/dataset/) with method=NAME (recipes/method/).")
+    p.add_argument("args", nargs="*", metavar="[RECIPE] key=value",
+                   help="a recipe YAML (optional), then Hydra overrides, e.g. method=iql trainer.steps=2000 seed=3")
+    p.add_argument("-m", "--multirun", action="store_true",
+                   help="a Hydra multirun over comma-separated values (seed=0,1,2); finished runs are skipped")
+    p.add_argument("--jobs", type=int, default=2, help="parallel runs of the default (joblib) launcher (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run="rm_torchrl.cli.train:run")
 

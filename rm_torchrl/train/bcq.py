@@ -38,160 +38,9 @@ from torch import nn
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, distance_loss
 
-from rm_torchrl.train.method import Method
+from rm_torchrl.train.bcq_networks import BCQVAE, BCQCritic, BCQPerturbation, repeat_states
 
-__all__ = [
-    "BCQVAE",
-    "BCQPerturbation",
-    "BCQCritic",
-    "BCQLoss",
-    "make_bcq_loss",
-    "make_bcq_optimizers",
-    "build_bcq",
-]
-
-
-def _mlp(in_features: int, out_features: int | None, hidden: Sequence[int]) -> nn.Sequential:
-    """Linear-ReLU stack; a final linear layer to ``out_features`` when it is given."""
-    layers: list[nn.Module] = []
-    last = in_features
-    for width in hidden:
-        layers += [nn.Linear(last, int(width)), nn.ReLU()]
-        last = int(width)
-    if out_features is not None:
-        layers.append(nn.Linear(last, out_features))
-    return nn.Sequential(*layers)
-
-
-def _as_bound(max_action: float | torch.Tensor) -> torch.Tensor:
-    bound = torch.as_tensor(max_action, dtype=torch.get_default_dtype()).detach().clone()
-    if (bound <= 0).any():
-        raise ValueError(f"max_action must be positive, got {max_action}.")
-    return bound
-
-
-def _clamp_symmetric(x: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
-    return torch.maximum(torch.minimum(x, bound), -bound)
-
-
-def _repeat_states(x: torch.Tensor, n: int) -> torch.Tensor:
-    """``[*B, D] -> [*B, n, D]`` (a view)."""
-    return x.unsqueeze(-2).expand(*x.shape[:-1], n, x.shape[-1])
-
-
-# --------------------------------------------------------------------------------------------
-# Networks
-# --------------------------------------------------------------------------------------------
-
-
-class BCQVAE(nn.Module):
-    """Conditional VAE ``G_omega(a | s)`` of the behaviour policy.
-
-    Args:
-        state_dim: size of the (concatenated) observation.
-        action_dim: size of the action.
-        max_action: symmetric action bound (float or per-dimension tensor); decoded actions are
-            ``max_action * tanh(.)``.
-        latent_dim: defaults to ``2 * action_dim``.
-        hidden: hidden widths of the encoder and of the decoder (750-750).
-        latent_clip: the prior sample is clipped to ``[-latent_clip, latent_clip]`` when
-            :meth:`decode` is called without ``z`` (0.5).
-        log_std_min, log_std_max: clamp of the encoder's ``log_std`` (-4, 15).
-
-    All methods accept arbitrary leading batch dimensions.
-    """
-
-    def __init__(
-        self,
-        state_dim: int,
-        action_dim: int,
-        max_action: float | torch.Tensor = 1.0,
-        latent_dim: int | None = None,
-        hidden: Sequence[int] = (750, 750),
-        latent_clip: float = 0.5,
-        log_std_min: float = -4.0,
-        log_std_max: float = 15.0,
-    ) -> None:
-        super().__init__()
-        if not hidden:
-            raise ValueError("BCQVAE needs at least one hidden layer.")
-        self.state_dim = int(state_dim)
-        self.action_dim = int(action_dim)
-        self.latent_dim = int(latent_dim) if latent_dim is not None else 2 * self.action_dim
-        self.latent_clip = float(latent_clip)
-        self.log_std_min = float(log_std_min)
-        self.log_std_max = float(log_std_max)
-        self.register_buffer("max_action", _as_bound(max_action))
-        self.encoder = _mlp(self.state_dim + self.action_dim, None, hidden)
-        self.mean = nn.Linear(int(hidden[-1]), self.latent_dim)
-        self.log_std = nn.Linear(int(hidden[-1]), self.latent_dim)
-        self.decoder = _mlp(self.state_dim + self.latent_dim, self.action_dim, hidden)
-
-    def encode(self, state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(mean, log_std)`` of ``q(z | s, a)``; ``log_std`` is clamped to ``[log_std_min, log_std_max]``."""
-        h = self.encoder(torch.cat([state, action], -1))
-        return self.mean(h), self.log_std(h).clamp(self.log_std_min, self.log_std_max)
-
-    def decode(self, state: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
-        """``max_action * tanh(d(s, z))``; without ``z``, ``z ~ N(0, 1)`` clipped to ``[-latent_clip, latent_clip]``."""
-        if z is None:
-            z = torch.randn(
-                *state.shape[:-1], self.latent_dim, device=state.device, dtype=state.dtype
-            ).clamp(-self.latent_clip, self.latent_clip)
-        return self.max_action * torch.tanh(self.decoder(torch.cat([state, z], -1)))
-
-    def forward(
-        self, state: torch.Tensor, action: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Reparameterised reconstruction: ``(reconstruction, mean, log_std)``."""
-        mean, log_std = self.encode(state, action)
-        z = mean + log_std.exp() * torch.randn_like(mean)
-        return self.decode(state, z), mean, log_std
-
-    def sample(self, state: torch.Tensor, n: int) -> torch.Tensor:
-        """``n`` decoded actions per state: ``[*B, D] -> [*B, n, action_dim]``."""
-        return self.decode(_repeat_states(state, n))
-
-
-class BCQPerturbation(nn.Module):
-    """Perturbation model ``xi_phi(s, a)``: ``clamp(a + phi * max_action * tanh(f(s, a)), -max_action, max_action)``.
-
-    Args:
-        state_dim, action_dim: input sizes.
-        max_action: symmetric action bound (float or per-dimension tensor).
-        phi: maximum perturbation, relative to ``max_action`` (0.05).
-        hidden: hidden widths (400-300).
-    """
-
-    def __init__(
-        self,
-        state_dim: int,
-        action_dim: int,
-        max_action: float | torch.Tensor = 1.0,
-        phi: float = 0.05,
-        hidden: Sequence[int] = (400, 300),
-    ) -> None:
-        super().__init__()
-        self.state_dim = int(state_dim)
-        self.action_dim = int(action_dim)
-        self.phi = float(phi)
-        self.register_buffer("max_action", _as_bound(max_action))
-        self.net = _mlp(self.state_dim + self.action_dim, self.action_dim, hidden)
-
-    def forward(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        delta = self.phi * self.max_action * torch.tanh(self.net(torch.cat([state, action], -1)))
-        return _clamp_symmetric(action + delta, self.max_action)
-
-
-class BCQCritic(nn.Module):
-    """One critic ``Q(s, a)`` (hidden 400-300) returning ``[*B, 1]``; :class:`BCQLoss` makes the twins."""
-
-    def __init__(self, state_dim: int, action_dim: int, hidden: Sequence[int] = (400, 300)) -> None:
-        super().__init__()
-        self.net = _mlp(int(state_dim) + int(action_dim), 1, hidden)
-
-    def forward(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.net(torch.cat([state, action], -1))
+__all__ = ["BCQVAE", "BCQPerturbation", "BCQCritic", "BCQLoss", "make_bcq_loss", "make_bcq_optimizers"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -528,7 +377,7 @@ class BCQLoss(LossModule):
         weights = self._maybe_get_priority_weight(tensordict)
         n = self.num_target_samples
         with torch.no_grad():
-            next_parts = [_repeat_states(p, n) for p in self._observation(tensordict, next=True)]
+            next_parts = [repeat_states(p, n) for p in self._observation(tensordict, next=True)]
             next_state = torch.cat(next_parts, -1)
             sampled = self._vae("decode", next_state)
             next_action = self._actor(self.target_actor_network_params, next_state, sampled)
@@ -590,7 +439,7 @@ class BCQLoss(LossModule):
         n = self.num_eval_samples if num_samples is None else int(num_samples)
         parts = [observation] if isinstance(observation, torch.Tensor) else list(observation)
         parts = _float_parts(parts)
-        rep_parts = [_repeat_states(p, n) for p in parts]
+        rep_parts = [repeat_states(p, n) for p in parts]
         state = torch.cat(rep_parts, -1)
         sampled = self._vae("decode", state)
         actions = self._actor(self.actor_network_params, state, sampled)  # [*B, n, A]
@@ -658,28 +507,3 @@ def make_bcq_optimizers(
         "loss_actor": torch.optim.Adam(loss.actor_network_params.parameters(), lr=lr_actor, **adam_kwargs),
         "loss_qvalue": torch.optim.Adam(loss.qvalue_network_params.parameters(), lr=lr_qvalue, **adam_kwargs),
     }
-
-
-def build_bcq(recipe, obs_keys: list, obs_dim: int, action_dim: int):
-    """BCQ for the recipe trainer (``rm_torchrl.train.losses.build_method``): a :class:`Method`.
-
-    Everything comes from the recipe: ``network.hidden`` for the perturbation model and the
-    critics, ``method.bcq_vae_hidden`` for the VAE, ``optim.lr_value`` / ``lr_actor`` /
-    ``lr_critic`` for the VAE / perturbation model / critics, ``method.bcq_lambda`` and
-    ``method.bcq_phi``; the BCQ recipes carry the authors' values (400-300, 750-750, lr 1e-3).
-    Actions lie in ``[-1, 1]``; BCQ uses no weight decay.
-    """
-    from torchrl.objectives import SoftUpdate
-
-    loss = make_bcq_loss(
-        obs_dim, action_dim, observation_keys=list(obs_keys), max_action=1.0,
-        phi=recipe.method.bcq_phi, lmbda=recipe.method.bcq_lambda,
-        vae_hidden=recipe.method.bcq_vae_hidden, actor_hidden=recipe.network.hidden,
-        critic_hidden=recipe.network.hidden,
-    )
-    loss.make_value_estimator(ValueEstimators.TD0, gamma=recipe.trainer.gamma)
-    o = recipe.optim
-    optimizers = list(make_bcq_optimizers(
-        loss, lr_vae=o.lr_value, lr_actor=o.lr_actor, lr_qvalue=o.lr_critic, fused=o.fused
-    ).values())
-    return Method(loss, optimizers, loss.make_policy(), SoftUpdate(loss, tau=recipe.trainer.tau))

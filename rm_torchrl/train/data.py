@@ -20,20 +20,23 @@ _DONE_KEYS = ("reward", "done", "terminated")
 
 @dataclass
 class TrainingData:
-    buffer: TensorDictReplayBuffer  # contiguous storage of the transitions the losses read
+    buffer: TensorDictReplayBuffer  # the transitions the losses read, as a TorchRL replay buffer
     obs_keys: list  # what the networks read: observation (+ RM encoding)
     obs_dim: int
     action_dim: int
     loc: torch.Tensor  # observation normalisation, shared with the evaluation env
     scale: torch.Tensor
     report: dict | None  # the refinement report, when the data was refined
+    transitions: TensorDictBase  # the buffer's storage (on the training device)
 
     def sample(self, batch_size: int, generator: torch.Generator) -> TensorDictBase:
-        """A uniform batch, gathered by index from the contiguous storage (no sampler overhead)."""
-        data = self.buffer.storage._storage
-        n = len(self.buffer)
-        rows = torch.randint(n, (batch_size,), generator=generator)
-        return data.apply(lambda x: x.index_select(0, rows), batch_size=[batch_size])
+        """A uniform batch, gathered by index from the contiguous storage (no sampler overhead).
+
+        The indices come from a CPU generator (the same batches on every device), then move.
+        """
+        rows = torch.randint(len(self.transitions), (batch_size,), generator=generator)
+        rows = rows.to(self.transitions.device, non_blocking=True)
+        return self.transitions.apply(lambda x: x.index_select(0, rows), batch_size=[batch_size])
 
 
 def _flat_observation(obs) -> torch.Tensor:
@@ -59,8 +62,8 @@ def _normalize_(td: TensorDictBase, loc: torch.Tensor, scale: torch.Tensor) -> N
         x.sub_(loc).div_(scale)
 
 
-def prepare_data(recipe: Recipe) -> TrainingData:
-    """Loads (and refines) the dataset, adds the RM encoding and fills a replay buffer."""
+def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> TrainingData:
+    """Loads (and refines) the dataset, adds the RM encoding and fills a replay buffer on ``device``."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
     report = None
     use_rm = recipe.data.refine
@@ -94,7 +97,8 @@ def prepare_data(recipe: Recipe) -> TrainingData:
         loc, scale = torch.zeros(obs.shape[-1]), torch.ones(obs.shape[-1])
     del raw, data  # the columns hold what training needs; the rest can go before the next copies
     _normalize_(td, loc, scale)
-    # the TensorDict becomes the buffer's storage as it is: no second copy of the dataset
+    td = td.to(device)  # the same tensors on the CPU: no second copy of the dataset there
+    # the TensorDict becomes the buffer's storage as it is
     buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
     obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
-    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report)
+    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report, td)

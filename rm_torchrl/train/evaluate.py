@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 
 import torch
-from torchrl.envs import Compose, DoubleToFloat, ObservationNorm, StepCounter, TransformedEnv
+from torchrl.envs import Compose, DeviceCastTransform, DoubleToFloat, ObservationNorm, StepCounter, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rm_torchrl.errors import RMError
@@ -38,7 +38,8 @@ def reward_convention(recipe: Recipe) -> tuple[str, str | None]:
     return ("d4rl" if task else "env"), task
 
 
-def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
+def make_eval_env(recipe: Recipe, data: TrainingData, device: torch.device | str = "cpu") -> TransformedEnv:
+    """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back."""
     import gymnasium as gym
     import gymnasium_robotics
     from torchrl.envs import GymEnv
@@ -71,15 +72,17 @@ def make_eval_env(recipe: Recipe, data: TrainingData) -> TransformedEnv:
             "set eval.observation (kitchen-v0 rebuilds the D4RL v0 layout) or another env"
         )
     env.append_transform(ObservationNorm(loc=data.loc, scale=data.scale, in_keys=["observation"], standard_normal=True))
+    if torch.device(device).type != "cpu":
+        env.append_transform(DeviceCastTransform(torch.device(device), orig_device=torch.device("cpu")))
     return env
 
 
 class Evaluator:
     """Runs ``eval.episodes`` deterministic episodes from the same seeds at every evaluation."""
 
-    def __init__(self, recipe: Recipe, data: TrainingData, policy):
+    def __init__(self, recipe: Recipe, data: TrainingData, policy, device: torch.device | str = "cpu"):
         self.recipe, self.policy = recipe, policy
-        self.env = make_eval_env(recipe, data)
+        self.env = make_eval_env(recipe, data, device)
         self.track_rm = bool(recipe.data.events)
         self.reward = reward_convention(recipe)[0]
 

@@ -1,4 +1,5 @@
-"""The loss of each method, its optimisers (with the paper's weight decay) and its eval policy."""
+"""Loss and optimiser pieces the methods share: BC's loss, Adam with the paper's weight decay, the
+actor's schedule, a one-call soft update and compilation (the registry is :mod:`rm_torchrl.train.methods`)."""
 from __future__ import annotations
 
 import math
@@ -7,12 +8,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import CQLLoss, LossModule, SoftUpdate
+from torchrl.objectives import LossModule, SoftUpdate
 
-from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.iql import SharedForwardIQLLoss
+from rm_torchrl.train.config import OptimConfig
 from rm_torchrl.train.method import Method
-from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 
 
 class BCLoss(LossModule):
@@ -63,17 +62,17 @@ class ActorSchedule:
             group["lr"] = base * f
 
 
-def _adam(groups: list[tuple[object, float, float]], recipe: Recipe) -> torch.optim.Optimizer:
+def adam(groups: list[tuple[object, float, float]], optim: OptimConfig) -> torch.optim.Optimizer:
     """One (fused) Adam over ``(parameters, lr, lambda)`` groups: one optimizer step per update, not one per network.
 
     Eq. 7-8: an L2 penalty lambda*||w||^2 has gradient 2*lambda*w, Adam's coupled weight_decay;
     ``optim.decay: decoupled`` uses AdamW's decay lambda instead.
     """
-    decoupled = recipe.optim.decay == "decoupled"
+    decoupled = optim.decay == "decoupled"
     param_groups = [{"params": [p for p in _params(td) if p.requires_grad], "lr": lr,
                      "weight_decay": wd if decoupled else 2 * wd} for td, lr, wd in groups]
     cls = torch.optim.AdamW if decoupled else torch.optim.Adam
-    return cls(param_groups, fused=recipe.optim.fused)
+    return cls(param_groups, fused=optim.fused)
 
 
 def _params(td_params) -> list:
@@ -101,53 +100,3 @@ def compile_method(method: Method) -> Method:
     and drops most per-op overhead of the forward and backward passes (compiled on the first call)."""
     method.compiled = torch.compile(method.loss, dynamic=False)
     return method
-
-
-def build_method(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
-    """The recipe's method, with the actor's learning-rate schedule of ``optim.actor_schedule``."""
-    method = _build(recipe, obs_keys, obs_dim, action_dim)
-    if recipe.optim.actor_schedule == "cosine":
-        method.schedule = ActorSchedule(method, recipe.trainer.steps)
-    return method
-
-
-def _build(recipe: Recipe, obs_keys: list, obs_dim: int, action_dim: int) -> Method:
-    m, o, hidden = recipe.method, recipe.optim, recipe.network.hidden
-    dropout = m.actor_dropout if m.name == "iql" else 0.0
-    actor = make_actor(obs_keys, obs_dim, action_dim, hidden, dropout, distribution=recipe.network.actor)
-    if m.name == "bc":
-        loss = BCLoss(actor)
-        opt = [_adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi)], recipe)]
-        return Method(loss, opt, actor, None)
-    if m.name == "bcq":
-        from rm_torchrl.train.bcq import build_bcq
-
-        return build_bcq(recipe, obs_keys, obs_dim, action_dim)
-    qvalue = make_qvalue(obs_keys, obs_dim, action_dim, hidden)
-    if m.name == "iql":
-        value = make_value(obs_keys, obs_dim, hidden)
-        loss = SharedForwardIQLLoss(actor, qvalue, value, num_qvalue_nets=2, loss_function="l2",
-                       temperature=m.temperature, expectile=m.expectile)
-        opt = [_adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi),
-                      (loss.qvalue_network_params, o.lr_critic, o.weight_decay_q),
-                      (loss.value_network_params, o.lr_value, o.weight_decay_q)], recipe)]
-    else:
-        loss = CQLLoss(actor, qvalue, loss_function="l2", min_q_weight=m.cql_alpha,
-                       deterministic_backup=True, num_random=10, with_lagrange=False,
-                       target_entropy=-float(action_dim))
-        opt = [
-            _adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi),
-                   (loss.qvalue_network_params, o.lr_critic, o.weight_decay_q)], recipe),
-            torch.optim.Adam([loss.log_alpha], lr=o.lr_actor),
-        ]
-    loss.make_value_estimator(gamma=recipe.trainer.gamma)
-    return Method(loss, opt, actor, ForeachSoftUpdate(loss, tau=recipe.trainer.tau))
-
-
-#: Which entries of each loss output are summed into the objective.
-LOSS_TERMS = {
-    "iql": ("loss_actor", "loss_qvalue", "loss_value"),
-    "cql": ("loss_actor", "loss_qvalue", "loss_cql", "loss_alpha"),
-    "bc": ("loss_actor",),
-    "bcq": ("loss_vae", "loss_actor", "loss_qvalue"),
-}

@@ -25,7 +25,8 @@ from tqdm import tqdm
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
-from rm_torchrl.train.losses import LOSS_TERMS, build_method, compile_method
+from rm_torchrl.train.losses import compile_method
+from rm_torchrl.train.methods import METHODS, build_method
 from rm_torchrl.train.rundir import CHECKPOINT, RunLock, load_checkpoint, mark_failed, open_run, save_checkpoint
 
 #: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
@@ -141,6 +142,21 @@ def _first_step(method, terms, batch):
         return gradient_step(method, terms, batch)
 
 
+def resolve_device(name: str) -> torch.device:
+    """``trainer.device``: ``auto`` is the first GPU when there is one, else the CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise RMError(f"trainer.device={name}, but this torch ({torch.__version__}) sees no CUDA device; "
+                          "use trainer.device=cpu or auto")
+        if (device.index or 0) >= count:
+            raise RMError(f"trainer.device={name}, but only {count} CUDA device(s) are visible")
+    return device
+
+
 def train(recipe: Recipe, progress: bool = True) -> Path:
     """Runs ``recipe`` to ``trainer.steps`` gradient steps; returns the run directory.
 
@@ -166,17 +182,18 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
     random.seed(recipe.seed)
 
     # --- data and model ---------------------------------------------------------------------
-    data = prepare_data(recipe)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    device = resolve_device(recipe.trainer.device)
+    data = prepare_data(recipe, device)
+    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim, device)
     if recipe.trainer.compile:
         compile_method(method)
-    terms = LOSS_TERMS[recipe.method.name]
+    terms = METHODS[recipe.method.name].terms
     generator = torch.Generator().manual_seed(recipe.seed)
     evaluator = None
     if recipe.eval.env:
         from rm_torchrl.train.evaluate import Evaluator
 
-        evaluator = Evaluator(recipe, data, method.policy)
+        evaluator = Evaluator(recipe, data, method.policy, device)
     (run_dir / "recipe.yaml").write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
     if data.report is not None:
         (run_dir / "refine_report.json").write_text(json.dumps(data.report, indent=2) + "\n")
@@ -189,6 +206,8 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
             opt.load_state_dict(opt_state)
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
+        if device.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"], device)
         start = state["step"]
         elapsed_before = float(state.get("elapsed_seconds", 0.0))
         _trim_history(run_dir, start)
@@ -204,6 +223,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
             "optimizers": [opt.state_dict() for opt in method.optimizers],
             "generator": generator.get_state(),
             "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None,  # dropout on the GPU
             "obs_loc": data.loc,
             "obs_scale": data.scale,
             "recipe": recipe.to_dict(),

@@ -1,0 +1,193 @@
+"""Recipes as Hydra composes them, checked against the schema of :mod:`rm_torchrl.train.config`.
+
+``recipes/train.yaml`` composes ``dataset=<name>`` (``recipes/dataset/``) with ``method=<name>``
+(``recipes/method/``); a named recipe such as ``recipes/door-human-v0-ours.yaml`` is the same
+composition in a file, and a run's own ``recipe.yaml`` (fully resolved) loads as it is. Overrides
+use Hydra's grammar (``optim.weight_decay_q=1e-3``, ``method=iql``); a value override of a key the
+recipe does not spell out is accepted as long as the schema has it.
+
+    >>> recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "seed=1"])  # doctest: +SKIP
+    >>> recipe.run_dir  # doctest: +SKIP
+    PosixPath('runs/door-human-v0-ours-seed1')
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+from pathlib import Path
+
+import yaml
+from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
+
+from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
+from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.refine.shortest import check_alpha
+from rm_torchrl.train.config import CHOICES, DEVICES, Recipe
+
+#: The package's recipes folder (the config root of ``rmrl train dataset=... method=...``).
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+SCHEMA = "rmrl_schema"  # a recipe's defaults list starts with it to get typed, complete sections
+#: Top-level entries that are values, not config groups (``dataset`` and ``method`` are groups).
+_VALUE_KEYS = tuple(f.name for f in dataclasses.fields(Recipe) if f.name != "method")
+
+ConfigStore.instance().store(name=SCHEMA, node=Recipe)
+#: ``${recipes_dir:}``: the recipes folder, for dataset options whose files lie beside the checkout.
+OmegaConf.register_new_resolver("recipes_dir", lambda: str(RECIPES), replace=True)
+
+
+def hydra_overrides(overrides) -> list[str]:
+    """Value overrides as Hydra's ``++key=value`` (set whether or not the recipe file spells the key out).
+
+    Group choices (``method=iql``, ``hydra/launcher=...``), ``hydra.*`` settings and overrides that
+    already carry ``+``/``~`` pass as they are; the schema refuses unknown keys afterwards.
+    """
+    out = []
+    for item in overrides:
+        key = item.split("=", 1)[0]
+        if "=" not in item or not key.strip():
+            raise RMError(f"overrides look like key.sub=value, got {item!r}")
+        plain = not key.startswith(("+", "~", "hydra")) and "/" not in key
+        out.append(f"++{item}" if plain and ("." in key or key in _VALUE_KEYS) else item)
+    return out
+
+
+def recipe_path(path) -> Path:
+    """The primary recipe file (``recipes/train.yaml`` for the ``dataset=... method=...`` form)."""
+    path = Path(path) if path else RECIPES / "train.yaml"
+    if path.suffix not in (".yaml", ".yml"):
+        raise RMError(f"a recipe is a .yaml file, got {str(path)!r}")
+    if not path.is_file():
+        raise RMError(f"recipe {path} does not exist")
+    return path.resolve()
+
+
+def search_path_override() -> str:
+    return f"hydra.searchpath=[file://{RECIPES}]"
+
+
+def compose_recipe(path=None, overrides=()) -> DictConfig:
+    """Hydra's composition of the recipe at ``path`` with ``overrides`` (not yet checked)."""
+    path = recipe_path(path)
+    try:
+        with initialize_config_dir(config_dir=str(path.parent), version_base="1.3", job_name="rmrl"):
+            return compose(config_name=path.name, overrides=[*hydra_overrides(overrides), search_path_override()])
+    except (HydraException, OmegaConfBaseException) as err:
+        raise RMError(f"recipe {path.name}: {_one_line(err)}") from None
+    except yaml.YAMLError as err:  # in the recipe or in one of the options it composes
+        raise RMError(f"recipe {path.name} (or an option it composes) is not valid YAML: {yaml_problem(err)}") from None
+
+
+def load_recipe(path=None, overrides=()) -> Recipe:
+    """The checked recipe at ``path`` (default ``recipes/train.yaml``) with ``overrides`` applied.
+
+    Relative ``data.source`` and ``data.events`` files are found from the recipe's folder, so that
+    a run's ``recipe.yaml`` (with absolute paths) works from anywhere.
+    """
+    return build_recipe(compose_recipe(path, overrides), recipe_path(path).parent)
+
+
+def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
+    """A composed config checked against the schema: typed sections, valid choices, finite numbers."""
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    raw.pop("hydra", None)
+    try:
+        recipe = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Recipe), raw))
+    except OmegaConfBaseException as err:
+        raise RMError(f"recipe: {_schema_message(err)}") from None
+    for attr in ("source", "events"):
+        value = getattr(recipe.data, attr)
+        if Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml"):
+            setattr(recipe.data, attr, os.path.abspath(Path(base) / value))  # normalised where absolute
+    validate(recipe)
+    return recipe
+
+
+def _one_line(err: Exception) -> str:
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    cause = err.__cause__
+    if cause is not None and str(cause).strip():
+        lines.append(str(cause).strip().splitlines()[0])
+    return "; ".join(lines[:2]) or type(err).__name__
+
+
+def _schema_message(err: OmegaConfBaseException) -> str:
+    key = getattr(err, "full_key", None) or "?"
+    if isinstance(err, ConfigKeyError) and getattr(err, "object_type", None) is not None:
+        allowed = sorted(f.name for f in dataclasses.fields(err.object_type))
+        parent = key.rpartition(".")[0] or "top level"
+        return f"unknown key {key}; allowed under {parent}: {allowed}"
+    message = str(getattr(err, "msg", err)).strip().splitlines()[0]
+    return f"{key}: {message}"
+
+
+def _floats(node, prefix: str = ""):
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _floats(value, f"{prefix}{f.name}.")
+        elif isinstance(value, float):
+            yield prefix + f.name, value
+
+
+def _lookup(recipe: Recipe, dotted: str):
+    node = recipe
+    for part in dotted.split("."):
+        node = getattr(node, part)
+    return node
+
+
+def validate(recipe: Recipe) -> None:
+    """Checks across fields that the types alone do not catch."""
+    for key, value in _floats(recipe):
+        if not math.isfinite(value):
+            raise RMError(f"recipe: {key} must be a finite number, got {value!r}")
+    for key, choices in CHOICES.items():
+        if _lookup(recipe, key) not in choices:
+            raise RMError(f"recipe: {key} must be one of {list(choices)}, got {_lookup(recipe, key)!r}")
+    if not recipe.data.source:
+        raise RMError("recipe: data.source is required")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._=+-]*", recipe.name) or ".." in recipe.name:
+        raise RMError(f"recipe: name must be a plain directory name (letters, digits, . _ - = +), got {recipe.name!r}")
+    if recipe.trainer.threads < 0:
+        raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):
+        raise RMError(f"recipe: trainer.device must be {DEVICES}, got {recipe.trainer.device!r}")
+    if recipe.method.name == "ours" and not recipe.data.refine:
+        raise RMError("recipe: method ours is IQL on the refined data; with data.refine=false use method.name=iql")
+    if recipe.data.refine:
+        if not recipe.data.events:
+            raise RMError("recipe: data.events is required when data.refine is true")
+        check_alpha(recipe.data.alpha)
+    positive = {
+        "trainer.steps": recipe.trainer.steps, "trainer.batch_size": recipe.trainer.batch_size,
+        "trainer.log_every": recipe.trainer.log_every, "trainer.checkpoint_every": recipe.trainer.checkpoint_every,
+        "eval.every": recipe.eval.every, "eval.episodes": recipe.eval.episodes, "eval.max_steps": recipe.eval.max_steps,
+        "method.cql.num_random": recipe.method.cql.num_random,
+    }
+    for key, value in positive.items():
+        if value <= 0:
+            raise RMError(f"recipe: {key} must be positive, got {value}")
+    if not 0 < recipe.trainer.gamma <= 1 or not 0 < recipe.trainer.tau <= 1:
+        raise RMError("recipe: trainer.gamma and trainer.tau must lie in (0, 1]")
+    if not 0 < recipe.method.iql.expectile < 1:
+        raise RMError(f"recipe: method.iql.expectile must lie in (0, 1), got {recipe.method.iql.expectile}")
+    for key, hidden in (("network.hidden", recipe.network.hidden), ("method.bcq.vae_hidden", recipe.method.bcq.vae_hidden)):
+        if not hidden or not all(h > 0 for h in hidden):
+            raise RMError(f"recipe: {key} must be a list of positive ints, got {hidden}")
+    for key in ("lr_actor", "lr_critic", "lr_value"):
+        if getattr(recipe.optim, key) <= 0:
+            raise RMError(f"recipe: optim.{key} must be positive")
+    for key in ("weight_decay_q", "weight_decay_pi"):
+        if getattr(recipe.optim, key) < 0:
+            raise RMError(f"recipe: optim.{key} must be >= 0")
+    if recipe.eval.env and recipe.eval.reward == "d4rl":
+        if d4rl_reward_task(recipe.eval.env, recipe.eval.env_kwargs) is None:
+            raise RMError(f"recipe: eval.reward=d4rl needs a dense v1 env with a known correction "
+                          f"({sorted(V1_ENVS)}), got eval.env={recipe.eval.env!r}; use auto or env")
+
