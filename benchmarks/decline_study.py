@@ -34,7 +34,7 @@ LAST = 5  # evaluations the choice rule averages
 
 
 #: Control arm: IQL's Adroit values, with which the AWR weights of the RM reward are flat (behaviour cloning).
-ADROIT_IQL = ["method.expectile=0.7", "method.temperature=0.5"]
+ADROIT_IQL = ["method.iql.expectile=0.7", "method.iql.temperature=0.5"]
 
 
 def arms(args) -> list[tuple[str, str, list[str]]]:

@@ -20,9 +20,9 @@ from tensordict.nn import InteractionType, set_interaction_type
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rm_torchrl.train.config import load_recipe  # noqa: E402
+from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 from rm_torchrl.train.data import ENCODING_KEY, prepare_data  # noqa: E402
-from rm_torchrl.train.losses import build_method  # noqa: E402
+from rm_torchrl.train.methods import build_method  # noqa: E402
 from rm_torchrl.train.rundir import load_checkpoint  # noqa: E402
 
 
@@ -39,8 +39,8 @@ def main(argv: list[str]) -> int:
     data = prepare_data(recipe)
     method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
     method.loss.load_state_dict(state["loss"])
-    loss, beta = method.loss, recipe.method.temperature
-    td = data.buffer.storage._storage
+    loss, beta = method.loss, recipe.method.iql.temperature
+    td = data.transitions
     with torch.no_grad():
         q = loss._q(td, loss.target_qvalue_network_params).min(0)[0]
         v = loss._v(td, loss.value_network_params)

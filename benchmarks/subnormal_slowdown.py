@@ -27,9 +27,9 @@ REAL = ROOT.parent / "shared" / "data" / "d4rl" / "door-human-v0.hdf5"
 def child(flush: bool, steps: int, window: int, source: str) -> dict:
     import torch
 
-    from rm_torchrl.train.config import load_recipe
+    from rm_torchrl.train.recipe import load_recipe
     from rm_torchrl.train.data import prepare_data
-    from rm_torchrl.train.losses import LOSS_TERMS, build_method
+    from rm_torchrl.train.methods import METHODS, build_method
     from rm_torchrl.train.trainer import gradient_step
 
     torch.set_num_threads(1)
@@ -45,7 +45,7 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
         t = time.perf_counter()
         for step in range(start + 1, start + window + 1):
             method.schedule(step)
-            gradient_step(method, LOSS_TERMS["iql"], data.sample(recipe.trainer.batch_size, g))
+            gradient_step(method, METHODS["iql"].terms, data.sample(recipe.trainer.batch_size, g))
         seconds.append(time.perf_counter() - t)
     return {"flush_denormal": flush, "seconds_per_window": [round(s, 2) for s in seconds],
             "late_over_early": round(seconds[-1] / seconds[0], 2)}

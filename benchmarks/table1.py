@@ -32,14 +32,14 @@ from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
 from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
 
-#: dataset -> (recipe prefix in recipes/, data.source override: a generated Minari id, or None for the recipe's)
+#: Table 1 row -> the dataset option in recipes/dataset/ (rmrl-*: the generated stand-ins, rmrl/<row>-v0)
 DATASETS = {
-    "door-human-v0": ("door-human-v0", None),
-    "kitchen-partial": ("kitchen-partial", "rmrl/kitchen-partial-v0"),
-    "kitchen-mixed": ("kitchen-mixed", "rmrl/kitchen-mixed-v0"),
-    "door-cloned": ("door-cloned", "rmrl/door-cloned-v0"),
-    "relocate-human": ("relocate-human", "rmrl/relocate-human-v0"),
-    "relocate-cloned": ("relocate-cloned", "rmrl/relocate-cloned-v0"),
+    "door-human-v0": "door-human-v0",
+    "kitchen-partial": "rmrl-kitchen-partial",
+    "kitchen-mixed": "rmrl-kitchen-mixed",
+    "door-cloned": "rmrl-door-cloned",
+    "relocate-human": "rmrl-relocate-human",
+    "relocate-cloned": "rmrl-relocate-cloned",
 }
 #: method -> (gradient steps, datasets it runs on)
 BUDGETS = {"ours": (50_000, list(DATASETS)), "iql": (50_000, list(DATASETS)), "bc": (50_000, list(DATASETS)),
@@ -62,16 +62,19 @@ PAPER_T2 = {
 }
 
 
-def grid(out: str, seeds, datasets=None, methods=None) -> list[tuple[str, list[str]]]:
-    """Seed-major, then dataset, then method: a partial sweep covers every cell with its first seeds."""
+def grid(out: str, seeds, datasets=None, methods=None) -> list[tuple[None, list[str]]]:
+    """Seed-major, then dataset, then method: a partial sweep covers every cell with its first seeds.
+
+    Each run is ``rmrl train dataset=OPTION method=M`` named after its Table 1 row.
+    """
     runs = []
     for seed in seeds:
-        for dataset, (prefix, source) in DATASETS.items():
+        for dataset, option in DATASETS.items():
             for method, (steps, where) in BUDGETS.items():
                 if dataset in where and dataset in (datasets or DATASETS) and method in (methods or BUDGETS):
-                    runs.append((str(ROOT / "recipes" / f"{prefix}-{method}.yaml"), [
-                        f"name={dataset}-{method}", f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
-                        "trainer.checkpoint_every=5000", *([f"data.source={source}"] if source else [])]))
+                    runs.append((None, [f"dataset={option}", f"method={method}", f"name={dataset}-{method}",
+                                        f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
+                                        "trainer.checkpoint_every=5000"]))
     return runs
 
 

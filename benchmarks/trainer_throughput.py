@@ -25,7 +25,8 @@ from torchrl.objectives import IQLLoss, SoftUpdate
 
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import TrainingData, prepare_data
-from rm_torchrl.train.losses import LOSS_TERMS, build_method, compile_method
+from rm_torchrl.train.losses import compile_method
+from rm_torchrl.train.methods import METHODS, build_method
 from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 from rm_torchrl.train.trainer import gradient_step
 
@@ -74,10 +75,10 @@ def plain_torchrl(data: TensorDict):
 def ours(data: TensorDict):
     """One update of the recipe trainer (``gradient_step``, ``trainer.compile=true``), as a closure."""
     recipe = Recipe()
-    recipe.method.actor_dropout = 0.0  # same networks as the baseline
+    recipe.method.iql.actor_dropout = 0.0  # same networks as the baseline
     training = _training_data(data)
     method = compile_method(build_method(recipe, training.obs_keys, OBS, ACT))  # as trainer.compile=true
-    terms = LOSS_TERMS["iql"]
+    terms = METHODS["iql"].terms
     g = torch.Generator().manual_seed(0)
     return lambda: gradient_step(method, terms, training.sample(BATCH, g))
 
@@ -85,7 +86,7 @@ def ours(data: TensorDict):
 def _training_data(data: TensorDict) -> TrainingData:
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(data.batch_size[0]), batch_size=BATCH)
     rb.extend(data)
-    return TrainingData(rb, ["observation"], OBS, ACT, torch.zeros(OBS), torch.ones(OBS), None)
+    return TrainingData(rb, ["observation"], OBS, ACT, torch.zeros(OBS), torch.ones(OBS), None, data)
 
 
 def _rate(step, steps: int) -> float:
@@ -126,7 +127,7 @@ def _peak_memory_child(path: str, refine: bool) -> None:
     method = build_method(recipe, training.obs_keys, training.obs_dim, training.action_dim)
     g = torch.Generator().manual_seed(0)
     for _ in range(50):
-        gradient_step(method, LOSS_TERMS["iql"], training.sample(BATCH, g))
+        gradient_step(method, METHODS["iql"].terms, training.sample(BATCH, g))
     print(json.dumps({"peak_rss_mib": _peak_rss_mib(), "training_transitions": len(training.buffer)}))
 
 

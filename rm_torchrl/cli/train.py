@@ -12,6 +12,7 @@ returns its mean evaluation score to Hydra, which is what the Optuna sweeper max
 """
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -48,25 +49,31 @@ def run(args) -> int:
 # --- multirun -------------------------------------------------------------------------------
 
 
-def _sweep_combinations(overrides: list[str]) -> list[list[str]] | None:
+def _sweep_combinations(path, overrides: list[str]) -> list[list[str]] | None:
     """Every job's overrides under the basic sweeper, or None when another sweeper (Optuna) decides them."""
     if any(o.startswith("hydra/sweeper=") for o in overrides):
         return None
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     try:
-        parsed = OverridesParser.create().parse_overrides(hydra_overrides(overrides))
+        parsed = OverridesParser.create().parse_overrides(hydra_overrides(overrides, path))
     except Exception as err:  # hydra's OverrideParseException and friends
         raise RMError(f"overrides: {str(err).splitlines()[0]}") from None
-    return [combo for batch in BasicSweeper.split_arguments(parsed, None) for combo in batch]
+    axes = [[f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()] if o.is_sweep_override()
+            else [o.input_line] for o in parsed if not o.key_or_group.startswith("hydra")]
+    return [list(combo) for combo in itertools.product(*axes)]
+
+
+def _statuses_of(runs: list[tuple[str | None, list[str]]]) -> list[tuple[Path, str]]:
+    """(run directory, ``run_status``) of each ``(recipe, overrides)``; a bad one is refused before any starts."""
+    from rm_torchrl.train.rundir import run_status
+
+    recipes = [load_recipe(path, overrides) for path, overrides in runs]
+    return [(r.run_dir, run_status(r)) for r in recipes]
 
 
 def _statuses(path, combos: list[list[str]]) -> list[tuple[Path, str]]:
-    from rm_torchrl.train.rundir import run_status
-
-    recipes = [load_recipe(path, combo) for combo in combos]  # a bad grid is refused before anything starts
-    return [(r.run_dir, run_status(r)) for r in recipes]
+    return _statuses_of([(path, combo) for combo in combos])
 
 
 def multirun(path, overrides: list[str], jobs: int = 2) -> int:
@@ -74,7 +81,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     import hydra
 
     primary = recipe_path(path)
-    combos = _sweep_combinations(overrides)
+    combos = _sweep_combinations(path, overrides)
     before = _statuses(path, combos) if combos is not None else []
     done = sum(s == "finished" for _, s in before)
     failed = [str(d) for d, s in before if s == "failed"]
@@ -83,8 +90,9 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     if failed:
         tqdm.write(f"{len(failed)} runs failed before and are not retried (see their failed.json): {failed}",
                    file=sys.stderr)
-    argv = ["--multirun", *hydra_overrides(overrides), search_path_override(),
-            "hydra.sweep.dir=${out}", "hydra.sweep.subdir=${name}-seed${seed}",
+    subdir = "${name}-seed${seed}" if combos is not None else "${name}-trial${hydra.job.num}-seed${seed}"
+    argv = ["--multirun", *hydra_overrides(overrides, path), search_path_override(),
+            "hydra.sweep.dir=${out}", f"hydra.sweep.subdir={subdir}",
             "hydra.output_subdir=null", "hydra/job_logging=none"]
     if not any(o.startswith("hydra/launcher=") for o in overrides):
         jobs = max(1, jobs)
@@ -138,6 +146,8 @@ def run_job(cfg) -> float | None:
     hydra_cfg = HydraConfig.get()
     try:
         recipe = build_recipe(cfg, _primary_dir(hydra_cfg))
+        if not hydra_cfg.sweeper._target_.endswith(".BasicSweeper"):
+            recipe.name = f"{recipe.name}-trial{hydra_cfg.job.num}"  # a tuner's trials differ in what it draws
         if recipe.trainer.threads == 0:
             recipe.trainer.threads = _job_threads(hydra_cfg)
         status = run_status(recipe)
@@ -158,6 +168,22 @@ def run_job(cfg) -> float | None:
     column = "score" if recipe.eval.score else "return_mean"
     values = read_eval_csv(evals).get(column)
     return float(values.mean()) if values is not None and len(values) else None
+
+
+def run_grid(runs: list[tuple[str | None, list[str]]], jobs: int) -> None:
+    """``(recipe or None, overrides)`` runs that are not one sweep, with a multirun's policy: finished
+    runs are skipped, killed ones resumed, failed ones not retried; every recipe is checked first."""
+    plans = [(path, overrides, status) for (path, overrides), (_, status) in
+             zip(runs, _statuses_of(runs))]
+    todo = [[*([path] if path else []), *o, *(["resume=true"] if s == "resumable" else [])]
+            for path, o, s in plans if s in ("new", "resumable")]
+    done = sum(s == "finished" for *_, s in plans)
+    failed = [o for _, o, s in plans if s == "failed"]
+    if done:
+        tqdm.write(f"{done} of {len(runs)} runs already finished: skipped", file=sys.stderr)
+    if failed:
+        tqdm.write(f"{len(failed)} runs failed before and are not retried: {failed}", file=sys.stderr)
+    run_many(todo, jobs)
 
 
 def run_many(runs: list[list[str]], jobs: int) -> None:

@@ -20,9 +20,8 @@ from rm_torchrl.refine.relabel import CounterfactualRelabel
 from rm_torchrl.refine.shortest import KeepShortest
 from rm_torchrl.refine.splice import Splice
 from rm_torchrl.refine.split import SplitGroup
+from rm_torchrl.run_format import TABLE2_ROWS
 
-#: Stage names of the paper's Table 2, keyed by the stage whose output they count.
-TABLE2_ROWS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events", "shorter": "Shorter Traj."}
 
 
 def make_refine_pipeline(

@@ -37,21 +37,12 @@ from typing import Iterable
 import numpy as np
 
 from rm_torchrl.errors import RMError, read_yaml
+from rm_torchrl.run_format import (EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR, RECIPE_FILE,  # noqa: F401
+                                   REFINE_FILE, REWARD_COLUMN, STAGES)
 
-EVAL_FILE = "eval.csv"
-RECIPE_FILE = "recipe.yaml"
-REFINE_FILE = "refine_report.json"
-FAILED_FILE = "failed.json"  # written by the trainer when a non-finite loss stopped a run
-EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
-#: The one text column of eval.csv: the reward convention of the returns (``d4rl`` or ``env``).
-REWARD_COLUMN = "reward"
-#: What a run written before eval.csv had a reward column was evaluated with: the env's own reward.
-LEGACY_REWARD = "env"
 #: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
 METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
 OURS = "Ours"
-#: The refinement stages of ``refine_report.json`` in the order of the paper's Table 2.
-STAGES = ("original", "split", "ordered", "shorter")
 METHOD_TOKENS = ("iql", "bc", "cql", "bcq", "ours", "refined", "rm", "raw", "baseline")
 DATASET_FROM = ("name", "source")
 
@@ -282,7 +273,7 @@ def read_eval_csv(path: Path) -> dict[str, np.ndarray]:
 def read_scalars(run_dir: Path) -> dict[str, np.ndarray]:
     """``logs/scalars/*.csv`` (lines ``step,value``) as name -> (n, 2) float arrays."""
     out = {}
-    for path in sorted((Path(run_dir) / "logs" / "scalars").glob("*.csv")):
+    for path in sorted((Path(run_dir) / LOGS_DIR / "scalars").glob("*.csv")):
         rows = []
         try:
             text = path.read_text()

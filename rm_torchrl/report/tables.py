@@ -4,11 +4,9 @@ from __future__ import annotations
 from collections import Counter
 from typing import Iterable, Sequence
 
+from rm_torchrl.run_format import TABLE2_ROWS as STAGE_LABELS
 from rm_torchrl.report.runs import STAGES, Group, Run, datasets, group_runs, methods
 
-#: Table 2's row labels (the same as RefineReport.table()).
-STAGE_LABELS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events",
-                "shorter": "Shorter Traj."}
 MISSING = "–"
 DAGGER = "†"
 

@@ -84,13 +84,15 @@ class ForeachSoftUpdate(SoftUpdate):
 
     def step(self) -> None:
         pairs = getattr(self, "_pairs", None)
-        if pairs is None:
-            for name in self._target_names:  # materialise the loss's target parameters, as SoftUpdate.step does
-                getattr(self.loss_module, name)
+        if pairs is None:  # the loss's target_<x>_params and their <x>_params, as SoftUpdate pairs them
             sources, targets = [], []
-            for key, source in self._sources.items():
-                sources += [t.data for t in source.values(True, True)]
-                targets += [t.data for t in self._targets.get(f"target_{key}").values(True, True)]
+            for name, target in self.loss_module.named_children():
+                if name.startswith("target_") and name.endswith("_params"):
+                    target = getattr(self.loss_module, name)  # materialised, as SoftUpdate.step does
+                    source = getattr(self.loss_module, name.removeprefix("target_"))
+                    for key, value in source.items(True, True):
+                        sources.append(value.data)
+                        targets.append(target.get(key).data)
             pairs = self._pairs = (targets, sources)
         torch._foreach_lerp_(pairs[0], pairs[1], 1 - self.eps)
 

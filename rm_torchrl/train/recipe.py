@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
-from rm_torchrl.errors import RMError, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.train.config import CHOICES, DEVICES, Recipe
 
@@ -41,19 +41,20 @@ ConfigStore.instance().store(name=SCHEMA, node=Recipe)
 OmegaConf.register_new_resolver("recipes_dir", lambda: str(RECIPES), replace=True)
 
 
-def hydra_overrides(overrides) -> list[str]:
-    """Value overrides as Hydra's ``++key=value`` (set whether or not the recipe file spells the key out).
-
-    Group choices (``method=iql``, ``hydra/launcher=...``), ``hydra.*`` settings and overrides that
-    already carry ``+``/``~`` pass as they are; the schema refuses unknown keys afterwards.
+def hydra_overrides(overrides, path=None) -> list[str]:
+    """The overrides for Hydra. A plain recipe file (a run's ``recipe.yaml``: no defaults list, so no
+    schema during composition) gets value overrides as ``++key=value``, set whether or not the file
+    spells the key out; the schema refuses unknown keys afterwards. Group choices (``method=iql``),
+    ``hydra`` settings and overrides that carry ``+``/``~`` pass as they are.
     """
+    plain = path is not None and "defaults" not in (read_yaml(recipe_path(path), "recipe") or {})
     out = []
     for item in overrides:
         key = item.split("=", 1)[0]
         if "=" not in item or not key.strip():
             raise RMError(f"overrides look like key.sub=value, got {item!r}")
-        plain = not key.startswith(("+", "~", "hydra")) and "/" not in key
-        out.append(f"++{item}" if plain and ("." in key or key in _VALUE_KEYS) else item)
+        value = not key.startswith(("+", "~", "hydra")) and "/" not in key and ("." in key or key in _VALUE_KEYS)
+        out.append(f"++{item}" if plain and value else item)
     return out
 
 
@@ -76,8 +77,13 @@ def compose_recipe(path=None, overrides=()) -> DictConfig:
     path = recipe_path(path)
     try:
         with initialize_config_dir(config_dir=str(path.parent), version_base="1.3", job_name="rmrl"):
-            return compose(config_name=path.name, overrides=[*hydra_overrides(overrides), search_path_override()])
+            return compose(config_name=path.name, overrides=[*hydra_overrides(overrides, path), search_path_override()])
     except (HydraException, OmegaConfBaseException) as err:
+        unknown = re.match(r"Could not override '([^']+)'", str(err))
+        if unknown and _allowed(unknown.group(1)) is not None:
+            key = unknown.group(1)
+            raise RMError(f"recipe: unknown key {key}; allowed under {key.rpartition('.')[0] or 'top level'}: "
+                          f"{_allowed(key)}") from None
         raise RMError(f"recipe {path.name}: {_one_line(err)}") from None
     except yaml.YAMLError as err:  # in the recipe or in one of the options it composes
         raise RMError(f"recipe {path.name} (or an option it composes) is not valid YAML: {yaml_problem(err)}") from None
@@ -106,6 +112,17 @@ def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
             setattr(recipe.data, attr, os.path.abspath(Path(base) / value))  # normalised where absolute
     validate(recipe)
     return recipe
+
+
+def _allowed(key: str) -> list[str] | None:
+    """The schema's entries beside ``key`` (a dotted path whose last part may not exist), or None."""
+    node = Recipe
+    for part in key.split(".")[:-1]:
+        fields = {f.name: f for f in dataclasses.fields(node)}
+        if part not in fields or not isinstance(fields[part].default_factory, type):
+            return None
+        node = fields[part].default_factory
+    return sorted(f.name for f in dataclasses.fields(node))
 
 
 def _one_line(err: Exception) -> str:

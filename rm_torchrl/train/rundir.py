@@ -17,11 +17,8 @@ from pathlib import Path
 import torch
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.run_format import CHECKPOINT, CHECKPOINT_TMP, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES
 
-CHECKPOINT = "checkpoint.pt"
-FAILED = "failed.json"
-LOCK = ".lock"
-TRAINER_FILES = ("recipe.yaml", "eval.csv", "refine_report.json", "logs", CHECKPOINT, "checkpoint.tmp", FAILED, LOCK)
 #: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
 #: logging, threads, compile may change between a run and its continuation).
 FROZEN = ("seed", "data", "rm", "method", "network", "optim", "trainer.batch_size", "trainer.gamma",
@@ -67,7 +64,7 @@ class RunLock:
 
 def save_checkpoint(path: Path, state: dict) -> None:
     """Plain tensors and containers only (loadable with ``weights_only=True``), written atomically."""
-    tmp = path.with_suffix(".tmp")
+    tmp = path.with_name(CHECKPOINT_TMP)
     torch.save(state, tmp)
     os.replace(tmp, path)
 

@@ -27,10 +27,9 @@ from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
 from rm_torchrl.train.losses import compile_method
 from rm_torchrl.train.methods import METHODS, build_method
-from rm_torchrl.train.rundir import CHECKPOINT, RunLock, load_checkpoint, mark_failed, open_run, save_checkpoint
+from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, LOGS_DIR, RECIPE_FILE, REFINE_FILE
+from rm_torchrl.train.rundir import RunLock, load_checkpoint, mark_failed, open_run, save_checkpoint
 
-#: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
-EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
 
 
 def _make_logger(recipe: Recipe, run_dir: Path):
@@ -39,19 +38,19 @@ def _make_logger(recipe: Recipe, run_dir: Path):
     backend = recipe.logger.backend
     kwargs = {"project": recipe.logger.project} if backend == "wandb" else {}
     try:
-        return get_logger(backend, logger_name=str(run_dir), experiment_name="logs", **kwargs)
+        return get_logger(backend, logger_name=str(run_dir), experiment_name=LOGS_DIR, **kwargs)
     except ImportError as err:
         raise RMError(f"logger.backend={backend} needs its package: pip install 'rm_torchrl[{backend}]' ({err})") from None
 
 
 def _trim_history(run_dir: Path, step: int) -> None:
     """Drops logged rows past ``step`` so a resumed run does not log them twice."""
-    files = [run_dir / "eval.csv", *sorted((run_dir / "logs" / "scalars").glob("*.csv"))]
+    files = [run_dir / EVAL_FILE, *sorted((run_dir / LOGS_DIR / "scalars").glob("*.csv"))]
     for path in files:
         if not path.is_file():
             continue
         lines = path.read_text().splitlines(keepends=True)
-        head = lines[:1] if path.name == "eval.csv" else []
+        head = lines[:1] if path.name == EVAL_FILE else []
         body = lines[len(head):]
         kept = [line for line in body if line.strip() and int(float(line.split(",")[0])) <= step]
         tmp = path.with_suffix(".tmp")
@@ -102,11 +101,14 @@ class RunInterrupted(KeyboardInterrupt):
 
 
 class _StopOnSignal:
-    """SIGINT and SIGTERM (what SLURM, Kubernetes and submitit send) ask the loop to stop at the next
+    """SIGINT, SIGTERM (what SLURM and Kubernetes send) and SIGUSR2 (submitit's and SLURM's
+    ``--signal`` warning before preemption or the time limit) ask the loop to stop at the next
     update boundary, so the checkpoint holds a whole update and the RNG state right after it; a
-    second signal interrupts at once (the last periodic checkpoint stays)."""
+    second signal interrupts at once (the last periodic checkpoint stays). After the checkpoint,
+    SIGUSR2 goes on to the handler that was there before: submitit's, which requeues the job, whose
+    next start resumes from that checkpoint."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
 
     def __init__(self):
         self.signum = None
@@ -125,6 +127,14 @@ class _StopOnSignal:
     def __exit__(self, *exc) -> None:
         for s, handler in self._previous.items():
             signal.signal(s, handler)
+
+    def forward(self, message: str) -> None:
+        """Hands a SIGUSR2 on to the Python handler it displaced (a cluster launcher's requeue, which
+        may end the process), saying first where the run stopped."""
+        previous = self._previous.get(signal.SIGUSR2)
+        if self.signum == signal.SIGUSR2 and callable(previous):
+            print(message, file=sys.stderr, flush=True)
+            previous(self.signum, None)
 
 
 def _first_step(method, terms, batch):
@@ -194,9 +204,9 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         from rm_torchrl.train.evaluate import Evaluator
 
         evaluator = Evaluator(recipe, data, method.policy, device)
-    (run_dir / "recipe.yaml").write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+    (run_dir / RECIPE_FILE).write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
     if data.report is not None:
-        (run_dir / "refine_report.json").write_text(json.dumps(data.report, indent=2) + "\n")
+        (run_dir / REFINE_FILE).write_text(json.dumps(data.report, indent=2) + "\n")
 
     # --- resume -----------------------------------------------------------------------------
     start, elapsed_before = 0, 0.0
@@ -212,7 +222,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         elapsed_before = float(state.get("elapsed_seconds", 0.0))
         _trim_history(run_dir, start)
     logger = _make_logger(recipe, run_dir)
-    eval_csv = run_dir / "eval.csv"
+    eval_csv = run_dir / EVAL_FILE
     if not eval_csv.exists():
         eval_csv.write_text(",".join(EVAL_COLUMNS) + "\n")
 
@@ -285,8 +295,9 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         bar.close()
         checkpoint(completed)
     if stop.signum is not None:
-        name = signal.Signals(stop.signum).name
-        raise RunInterrupted(stop.signum, f"{name}: stopped after step {completed} of {recipe.trainer.steps}; "
-                                          f"checkpoint written, continue with resume=true")
+        message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {recipe.trainer.steps}; "
+                   "checkpoint written, continue with resume=true")
+        stop.forward(message)
+        raise RunInterrupted(stop.signum, message)
     return run_dir
 

@@ -1,0 +1,29 @@
+"""The run-directory format: what the trainer writes and ``rmrl report`` reads, in one place.
+
+A run directory ``OUT/<name>-seed<k>/`` holds :data:`RECIPE_FILE` (the resolved recipe),
+:data:`EVAL_FILE` (one row of :data:`EVAL_COLUMNS` per evaluation), :data:`REFINE_FILE` when the
+data was refined (its stages are Table 2's rows, :data:`TABLE2_ROWS`), TorchRL logger output
+under :data:`LOGS_DIR`, :data:`CHECKPOINT`, :data:`FAILED_FILE` when a non-finite loss stopped it,
+and the lock of the process that owns it.
+"""
+
+RECIPE_FILE = "recipe.yaml"
+EVAL_FILE = "eval.csv"
+REFINE_FILE = "refine_report.json"
+LOGS_DIR = "logs"  # TorchRL logger experiment; CSV scalars in logs/scalars/<name>.csv
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_TMP = "checkpoint.tmp"  # a checkpoint being written (renamed over CHECKPOINT when complete)
+FAILED_FILE = "failed.json"
+LOCK_FILE = ".lock"
+TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, CHECKPOINT_TMP, FAILED_FILE, LOCK_FILE)
+
+#: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
+EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
+REWARD_COLUMN = "reward"  # the one text column of eval.csv
+#: What a run written before eval.csv had a reward column was evaluated with: the env's own reward.
+LEGACY_REWARD = "env"
+
+#: The refinement stages of ``refine_report.json``, as the paper's Table 2 labels its rows, in its order.
+TABLE2_ROWS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events",
+               "shorter": "Shorter Traj."}
+STAGES = tuple(TABLE2_ROWS)

@@ -1,0 +1,179 @@
+"""Recipes composed by Hydra, and sweeps on its launchers (real local processes), Optuna, requeue, devices."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from rm_torchrl.cli.main import main
+from rm_torchrl.errors import RMError
+from rm_torchrl.train import load_recipe, train
+from rm_torchrl.train.recipe import RECIPES
+
+from test_train import make_recipe, write_d4rl
+
+DATASETS = sorted(p.stem for p in (RECIPES / "dataset").glob("*.yaml"))
+METHODS = sorted(p.stem for p in (RECIPES / "method").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
+
+
+def tiny(tmp_path: Path, dataset: Path, text: str = "") -> Path:
+    """A recipe on the tiny data that composes the schema, so that any key can be overridden."""
+    path = make_recipe(tmp_path, dataset, text)
+    path.write_text("defaults: [rmrl_schema, _self_]\n" + path.read_text())
+    return path
+
+
+def steps_of(run_dir: Path) -> int:
+    return torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"]
+
+
+# --- composition -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("data", DATASETS)
+def test_every_dataset_composes_with_every_method(data, method):
+    recipe = load_recipe(None, [f"dataset={data}", f"method={method}", "seed=2", "out=OUT"])
+    assert recipe.run_dir == Path("OUT") / f"{data}-{method}-seed2"
+    assert recipe.method.name == method and recipe.data.refine == (method == "ours")
+    assert recipe.eval.env and recipe.data.events and recipe.data.source
+    assert set(recipe.to_dict()["method"]) <= {"name", "iql", "cql", "bcq"}
+
+
+def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp_path):
+    named = load_recipe(RECIPES / "door-human-v0-ours.yaml").to_dict()
+    assert named == load_recipe(None, ["dataset=door-human-v0", "method=ours"]).to_dict()
+    assert Path(named["data"]["source"]).is_absolute()
+    resolved = tmp_path / "recipe.yaml"
+    resolved.write_text(yaml.safe_dump(named))
+    again = load_recipe(resolved, ["trainer.steps=7"])  # a run's own recipe: plain YAML, still typed
+    assert again.trainer.steps == 7 and again.to_dict()["method"] == named["method"]
+
+
+@pytest.mark.parametrize("override,message", [
+    ("dataset=nope", "Could not find 'dataset/nope'"),
+    ("method=sac", "Could not find 'method/sac'"),
+    ("optim.weight_decay_q=1e-3x", "optim.weight_decay_q"),
+])
+def test_bad_choices_are_one_line_errors(override, message):
+    with pytest.raises(RMError, match=message) as err:
+        load_recipe(None, [override])
+    assert "\n" not in str(err.value)
+
+
+def test_cli_reads_exponent_floats_and_names_unknown_keys(tmp_path, dataset, capsys):
+    path = tiny(tmp_path, dataset)
+    assert main(["train", str(path), "optim.weight_decay_q=1e-3", "trainer.steps=5", "--no-progress"]) == 0
+    assert load_recipe(tmp_path / "runs" / "tiny-seed0" / "recipe.yaml").optim.weight_decay_q == 1e-3
+    assert main(["train", str(path), "optim.weight_decai_q=1e-3"]) == 2
+    assert "unknown key optim.weight_decai_q" in capsys.readouterr().err
+
+
+# --- launchers -----------------------------------------------------------------------------------
+
+def test_submitit_local_launcher_runs_each_job_in_its_process_and_skips_them_next_time(tmp_path, dataset, capfd):
+    path = tiny(tmp_path, dataset)
+    out = tmp_path / "sweep"
+    argv = ["train", "-m", str(path), "method.name=iql,bc", "name=tiny-${method.name}", "trainer.steps=20",
+            f"out={out}", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5"]
+    assert main(argv) == 0
+    runs = [out / "tiny-iql-seed0", out / "tiny-bc-seed0"]
+    assert [steps_of(r) for r in runs] == [20, 20]
+    assert sorted(p.name for p in (out / ".submitit").iterdir())  # submitit's own job folders
+    stamps = [(r / "checkpoint.pt").stat().st_mtime_ns for r in runs]
+    assert main(argv) == 0
+    assert "2 of 2 runs already finished: skipped" in capfd.readouterr().err
+    assert [(r / "checkpoint.pt").stat().st_mtime_ns for r in runs] == stamps  # nothing trained again
+
+
+def test_optuna_sweeper_maximises_the_returned_mean_score(tmp_path, dataset):
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+    path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 10, every: 10, episodes: 1, score: door}\n")
+    out = tmp_path / "tune"
+    assert main(["train", "-m", str(path), "hydra/sweeper=optuna", "hydra.sweeper.n_trials=2",
+                 "hydra.sweeper.direction=maximize", "hydra.sweeper.sampler.seed=0",
+                 "data.alpha=interval(0.3,1.0)", "trainer.steps=10", f"out={out}", "--jobs", "1"]) == 0
+    trials = sorted(p for p in out.iterdir() if p.is_dir() and p.name.startswith("tiny-trial"))
+    assert len(trials) == 2, sorted(out.iterdir())
+    alphas = {load_recipe(t / "recipe.yaml").data.alpha for t in trials}
+    assert len(alphas) == 2 and all(0.3 <= a <= 1.0 for a in alphas)
+    best = yaml.safe_load((out / "optimization_results.yaml").read_text())
+    assert set(best["best_params"]) == {"data.alpha"} and isinstance(best["best_value"], float)
+
+
+def test_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_path, dataset):
+    """SIGUSR2 (submitit's preemption warning): checkpoint at the next update, submitit requeues, the
+    requeued job resumes; the finished run is the uninterrupted one's, bit for bit."""
+    path = tiny(tmp_path, dataset)
+    steps = ["trainer.steps=3000", "trainer.checkpoint_every=100000", "trainer.log_every=500"]
+    straight = train(load_recipe(path, ["name=straight", *steps]), progress=False)
+    out = tmp_path / "preempt"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "rm_torchrl.cli.main", "train", "-m", str(path), "seed=0", f"out={out}", *steps,
+         "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        run = out / "tiny-seed0"
+        end = time.time() + 120
+        while not (run / "logs" / "scalars" / "loss_actor.csv").exists():  # the job is training
+            assert proc.poll() is None and time.time() < end, proc.communicate()[0]
+            time.sleep(0.05)
+        task = _submitit_task(out)
+        os.kill(task, signal.SIGUSR2)
+        log, _ = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, log
+    job_logs = "".join(p.read_text() for p in (out / ".submitit").rglob("*.err"))
+    assert "SIGUSR2: stopped after step" in job_logs and "resuming" in job_logs, job_logs
+    stopped = int(job_logs.split("SIGUSR2: stopped after step ")[1].split()[0])
+    assert 0 < stopped < 3000
+    assert steps_of(run) == 3000
+    a, b = torch.load(straight / "checkpoint.pt", weights_only=True), torch.load(run / "checkpoint.pt", weights_only=True)
+    for key, value in a["loss"].items():
+        torch.testing.assert_close(value, b["loss"][key], rtol=0, atol=0, msg=key)
+
+
+def _submitit_task(out: Path) -> int:
+    """The pid of the running submitit task (``python -m submitit.core._submit FOLDER``) of a sweep in ``out``."""
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError):
+            continue
+        if b"submitit.core._submit" in cmd and any(str(out).encode() in part for part in cmd):
+            return int(proc.name)
+    raise AssertionError(f"no submitit task of {out} is running")
+
+
+# --- device ----------------------------------------------------------------------------------------
+
+def test_device_cpu_is_the_same_run_as_auto_on_a_cpu_machine(tmp_path, dataset):
+    if torch.cuda.is_available():
+        pytest.skip("auto picks the GPU here")
+    path = tiny(tmp_path, dataset)
+    a = train(load_recipe(path, ["name=auto", "trainer.steps=30"]), progress=False)
+    b = train(load_recipe(path, ["name=cpu", "trainer.steps=30", "trainer.device=cpu"]), progress=False)
+    sa, sb = torch.load(a / "checkpoint.pt", weights_only=True), torch.load(b / "checkpoint.pt", weights_only=True)
+    for key, value in sa["loss"].items():
+        torch.testing.assert_close(value, sb["loss"][key], rtol=0, atol=0, msg=key)
+
+
+def test_cuda_without_a_gpu_is_a_one_line_error(tmp_path, dataset, capsys):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    assert main(["train", str(tiny(tmp_path, dataset)), "trainer.device=cuda", "trainer.steps=5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("rmrl train: error: trainer.device=cuda, but this torch") and "\n" not in err, err
+    assert not (tmp_path / "runs" / "tiny-seed0" / "checkpoint.pt").exists()
