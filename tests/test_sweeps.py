@@ -97,6 +97,15 @@ def test_submitit_local_launcher_runs_each_job_in_its_process_and_skips_them_nex
     assert [(r / "checkpoint.pt").stat().st_mtime_ns for r in runs] == stamps  # nothing trained again
 
 
+def test_ray_launcher_on_a_local_ray_instance(tmp_path, dataset):
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+    path = tiny(tmp_path, dataset)
+    out = tmp_path / "ray"
+    assert main(["train", "-m", str(path), "seed=0,1", "trainer.steps=10", f"out={out}", "hydra/launcher=ray",
+                 "+hydra.launcher.ray.init.num_cpus=2"]) == 0
+    assert [steps_of(out / f"tiny-seed{k}") for k in (0, 1)] == [10, 10]
+
+
 def test_optuna_sweeper_maximises_the_returned_mean_score(tmp_path, dataset):
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 10, every: 10, episodes: 1, score: door}\n")

@@ -9,7 +9,7 @@ from torchrl.data import TensorDictReplayBuffer, TensorStorage
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
-from rm_torchrl.events.spec import load_event_spec
+from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.pipeline import refine
 from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.train.config import Recipe
@@ -28,6 +28,7 @@ class TrainingData:
     scale: torch.Tensor
     report: dict | None  # the refinement report, when the data was refined
     transitions: TensorDictBase  # the buffer's storage (on the training device)
+    events: EventSpec | None = None  # the resolved event spec (None when the recipe names none)
 
     def sample(self, batch_size: int, generator: torch.Generator) -> TensorDictBase:
         """A uniform batch, gathered by index from the contiguous storage (no sampler overhead).
@@ -66,9 +67,10 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     """Loads (and refines) the dataset, adds the RM encoding and fills a replay buffer on ``device``."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
     report = None
+    spec = load_event_spec(recipe.data.events) if recipe.data.events else None  # resolved once, passed down
     use_rm = recipe.data.refine
     if use_rm:
-        data, rep = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints)
+        data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints)
         report = rep.to_dict()
     else:
         data = raw
@@ -84,7 +86,7 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     columns["next"]["reward"] = columns["next"]["reward"].float()
     obs_keys = ["observation"]
     if use_rm:
-        rm = EventOrderedRM(load_event_spec(recipe.data.events).names)
+        rm = EventOrderedRM(spec.names)
         columns[ENCODING_KEY] = rm.encode(data.get("rm_state"), recipe.rm.encoding)
         columns["next"][ENCODING_KEY] = rm.encode(data.get(("next", "rm_state")), recipe.rm.encoding)
         obs_keys.append(ENCODING_KEY)
@@ -101,4 +103,4 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     # the TensorDict becomes the buffer's storage as it is
     buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
     obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
-    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report, td)
+    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report, td, spec)

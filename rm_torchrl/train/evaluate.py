@@ -60,9 +60,9 @@ def make_eval_env(recipe: Recipe, data: TrainingData, device: torch.device | str
     task = reward_convention(recipe)[1]
     if task:
         transforms.append(D4RLReward(task))  # reads the raw observation: before ObservationNorm
-    if recipe.data.events:
+    if data.events is not None:
         encoding = recipe.rm.encoding if ENCODING_KEY in data.obs_keys else None
-        transforms.append(RMEnvTransform(recipe.data.events, encoding=encoding, encoding_key=ENCODING_KEY))
+        transforms.append(RMEnvTransform(data.events, encoding=encoding, encoding_key=ENCODING_KEY))
     env = TransformedEnv(base, Compose(*transforms))
     dim = env.observation_spec["observation"].shape[-1]
     if dim != data.loc.shape[-1]:  # before the normalisation, which would fail on the shapes
@@ -83,7 +83,7 @@ class Evaluator:
     def __init__(self, recipe: Recipe, data: TrainingData, policy, device: torch.device | str = "cpu"):
         self.recipe, self.policy = recipe, policy
         self.env = make_eval_env(recipe, data, device)
-        self.track_rm = bool(recipe.data.events)
+        self.track_rm = data.events is not None
         self.reward = reward_convention(recipe)[0]
 
     def run(self) -> dict:
