@@ -336,10 +336,12 @@ def test_multirun_threads_share_the_cores_unless_set(monkeypatch):
     launched = []
 
     class FakeProcess:
+        returncode = 0
+
         def __init__(self, cmd, env=None):
             launched.append((cmd, env))
 
-        def wait(self):
+        def poll(self):
             return 0
 
     monkeypatch.setattr(train_cli.subprocess, "Popen", FakeProcess)
@@ -349,3 +351,29 @@ def test_multirun_threads_share_the_cores_unless_set(monkeypatch):
     assert "trainer.threads=2" in first and first_env["OMP_NUM_THREADS"] == "2"
     assert [a for a in second if a.startswith("trainer.threads=")] == ["trainer.threads=1"]  # the user's value wins
     assert second_env["OMP_NUM_THREADS"] == "1"
+
+
+def test_run_many_starts_the_next_run_when_any_run_ends(monkeypatch):
+    """A long first run must not hold back the queue while its neighbour's core is free."""
+    from rm_torchrl.cli import train as train_cli
+
+    events = []
+
+    class FakeProcess:
+        def __init__(self, cmd, env=None):
+            self.seed, self.polls, self.returncode = cmd[cmd.index("train") + 1], 0, None
+            events.append(f"start {self.seed}")
+
+        def poll(self):
+            self.polls += 1
+            if self.seed == "a" and self.polls < 3:  # the long one
+                return None
+            if self.returncode is None:
+                events.append(f"end {self.seed}")
+                self.returncode = 0
+            return 0
+
+    monkeypatch.setattr(train_cli.subprocess, "Popen", FakeProcess)
+    monkeypatch.setattr(train_cli.time, "sleep", lambda s: None)
+    train_cli.run_many([["a"], ["b"], ["c"]], jobs=2)
+    assert events.index("start c") < events.index("end a"), events

@@ -16,6 +16,7 @@ import itertools
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from tqdm import tqdm
@@ -208,9 +209,14 @@ def run_many(runs: list[list[str]], jobs: int) -> None:
                        *([] if own else [f"trainer.threads={threads}"]), "--no-progress"]
                 env = {**os.environ, "OMP_NUM_THREADS": str(n)} if n > 0 else None
                 running.append((subprocess.Popen(cmd, env=env), argv))
-            proc, argv = running.pop(0)
-            if proc.wait() != 0:
-                failures.append(" ".join(argv))
-            bar.update()
+            finished = [(p, a) for p, a in running if p.poll() is not None]
+            if not finished:  # whichever run ends first frees its cores for the next
+                time.sleep(0.5)
+                continue
+            for proc, argv in finished:
+                running.remove((proc, argv))
+                if proc.returncode != 0:
+                    failures.append(" ".join(argv))
+                bar.update()
     if failures:
         raise RMError(f"{len(failures)} of {len(runs)} runs failed: {failures}")
