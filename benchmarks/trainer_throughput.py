@@ -86,7 +86,8 @@ def ours(data: TensorDict):
 def _training_data(data: TensorDict) -> TrainingData:
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(data.batch_size[0]), batch_size=BATCH)
     rb.extend(data)
-    return TrainingData(rb, ["observation"], OBS, ACT, torch.zeros(OBS), torch.ones(OBS), None, data)
+    return TrainingData(obs_keys=["observation"], obs_dim=OBS, action_dim=ACT, loc=torch.zeros(OBS),
+                        scale=torch.ones(OBS), events=None, buffer=rb, transitions=data, report=None)
 
 
 def _rate(step, steps: int) -> float:

@@ -186,3 +186,28 @@ def test_cuda_without_a_gpu_is_a_one_line_error(tmp_path, dataset, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("rmrl train: error: trainer.device=cuda, but this torch") and "\n" not in err, err
     assert not (tmp_path / "runs" / "tiny-seed0" / "checkpoint.pt").exists()
+
+
+# --- policies out of runs --------------------------------------------------------------------------
+
+def test_load_policy_rolls_out_in_its_env_and_evaluates_like_the_trainer(tmp_path, dataset, capsys):
+    from torchrl.envs.utils import check_env_specs
+
+    from rm_torchrl import load_policy
+
+    path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 15, every: 20, episodes: 2, score: door}\n")
+    run_dir = train(load_recipe(path, ["trainer.steps=20"]), progress=False)
+    loaded = load_policy(run_dir)
+    env = loaded.make_env()
+    check_env_specs(env)
+    rollout = env.rollout(30, loaded.policy)
+    assert rollout["action"].shape == (15, 28) and ("next", "rm_state") in rollout.keys(True)
+    assert loaded.policy.in_keys == ["observation", "rm_encoding"] and loaded.step == 20
+    row = (run_dir / "eval.csv").read_text().splitlines()[-1].split(",")
+    result = loaded.evaluate()
+    assert [round(result[k], 6) for k in ("return_mean", "return_std")] == [float(row[1]), float(row[2])]
+    assert main(["evaluate", str(run_dir), "--json", "--episodes", "1"]) == 0
+    printed = __import__("json").loads(capsys.readouterr().out)
+    assert printed["step"] == 20 and printed["episodes"] == 1 and printed["reward"] == "d4rl"
+    assert main(["evaluate", str(tmp_path)]) == 2
+    assert "is not a run directory with a checkpoint" in capsys.readouterr().err

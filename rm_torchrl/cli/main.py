@@ -67,6 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run="rm_torchrl.cli.train:run")
 
+    from rm_torchrl.cli.evaluate import add_arguments as _evaluate_arguments
+
+    p = sub.add_parser("evaluate", help="evaluate a run's checkpoint in its env, as the trainer does")
+    _evaluate_arguments(p)
+    p.set_defaults(run="rm_torchrl.cli.evaluate:run")
+
     from rm_torchrl.cli.report import add_arguments as _report_arguments
 
     p = sub.add_parser("report", help="Table 1/Table 2 in Markdown and learning curves from training runs")

@@ -19,16 +19,22 @@ _DONE_KEYS = ("reward", "done", "terminated")
 
 
 @dataclass
-class TrainingData:
-    buffer: TensorDictReplayBuffer  # the transitions the losses read, as a TorchRL replay buffer
+class PolicyInput:
+    """What a policy reads, and what its evaluation env needs to hand it exactly that."""
+
     obs_keys: list  # what the networks read: observation (+ RM encoding)
     obs_dim: int
     action_dim: int
     loc: torch.Tensor  # observation normalisation, shared with the evaluation env
     scale: torch.Tensor
-    report: dict | None  # the refinement report, when the data was refined
+    events: EventSpec | None  # the resolved event spec (None when the recipe names none)
+
+
+@dataclass
+class TrainingData(PolicyInput):
+    buffer: TensorDictReplayBuffer  # the transitions the losses read, as a TorchRL replay buffer
     transitions: TensorDictBase  # the buffer's storage (on the training device)
-    events: EventSpec | None = None  # the resolved event spec (None when the recipe names none)
+    report: dict | None  # the refinement report, when the data was refined
 
     def sample(self, batch_size: int, generator: torch.Generator) -> TensorDictBase:
         """A uniform batch, gathered by index from the contiguous storage (no sampler overhead).
@@ -103,4 +109,5 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     # the TensorDict becomes the buffer's storage as it is
     buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
     obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
-    return TrainingData(buffer, obs_keys, obs_dim, td.get("action").shape[-1], loc, scale, report, td, spec)
+    return TrainingData(obs_keys=obs_keys, obs_dim=obs_dim, action_dim=td.get("action").shape[-1], loc=loc,
+                        scale=scale, events=spec, buffer=buffer, transitions=td, report=report)

@@ -13,7 +13,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import ENCODING_KEY, TrainingData
+from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
 
 #: D4RL normalisation: score = 100 * (return - low) / (high - low).
 SCORE_RANGES = {
@@ -38,7 +38,7 @@ def reward_convention(recipe: Recipe) -> tuple[str, str | None]:
     return ("d4rl" if task else "env"), task
 
 
-def make_eval_env(recipe: Recipe, data: TrainingData, device: torch.device | str = "cpu") -> TransformedEnv:
+def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str = "cpu") -> TransformedEnv:
     """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back."""
     import gymnasium as gym
     import gymnasium_robotics
@@ -80,7 +80,7 @@ def make_eval_env(recipe: Recipe, data: TrainingData, device: torch.device | str
 class Evaluator:
     """Runs ``eval.episodes`` deterministic episodes from the same seeds at every evaluation."""
 
-    def __init__(self, recipe: Recipe, data: TrainingData, policy, device: torch.device | str = "cpu"):
+    def __init__(self, recipe: Recipe, data: PolicyInput, policy, device: torch.device | str = "cpu"):
         self.recipe, self.policy = recipe, policy
         self.env = make_eval_env(recipe, data, device)
         self.track_rm = data.events is not None

@@ -152,18 +152,18 @@ def _first_step(method, terms, batch):
         return gradient_step(method, terms, batch)
 
 
-def resolve_device(name: str) -> torch.device:
-    """``trainer.device``: ``auto`` is the first GPU when there is one, else the CPU."""
+def resolve_device(name: str, key: str = "trainer.device") -> torch.device:
+    """``trainer.device`` (``key`` names it in errors): ``auto`` is the first GPU when there is one, else the CPU."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
-            raise RMError(f"trainer.device={name}, but this torch ({torch.__version__}) sees no CUDA device; "
-                          "use trainer.device=cpu or auto")
+            raise RMError(f"{key}={name}, but this torch ({torch.__version__}) sees no CUDA device; "
+                          f"use {key}=cpu or auto")
         if (device.index or 0) >= count:
-            raise RMError(f"trainer.device={name}, but only {count} CUDA device(s) are visible")
+            raise RMError(f"{key}={name}, but only {count} CUDA device(s) are visible")
     return device
 
 

@@ -1,0 +1,92 @@
+"""Trained policies out of run directories: a TorchRL module and the evaluation env it was trained for.
+
+    >>> from rm_torchrl import load_policy
+    >>> loaded = load_policy("runs/door-human-v0-ours-seed0")  # doctest: +SKIP
+    >>> env = loaded.make_env()  # doctest: +SKIP
+    >>> rollout = env.rollout(200, loaded.policy)  # doctest: +SKIP
+
+The env carries the run's transforms (step limit, D4RL's reward where the v1 env's differs, the RM
+env transform with the run's event spec and encoding, the training data's observation
+normalisation), so the policy sees what it was trained on. The policy acts deterministically (the
+mean action) unless an exploration type says otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs import TransformedEnv
+
+from rm_torchrl.errors import RMError
+from rm_torchrl.events.spec import load_event_spec
+from rm_torchrl.rm.machine import EventOrderedRM
+from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
+from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
+from rm_torchrl.train.evaluate import Evaluator, make_eval_env
+from rm_torchrl.train.methods import build_method
+from rm_torchrl.train.recipe import load_recipe
+from rm_torchrl.train.rundir import load_checkpoint
+from rm_torchrl.train.trainer import resolve_device
+
+
+@dataclass
+class LoadedPolicy:
+    policy: TensorDictModule  # reads the observation (and RM encoding) keys, writes "action"
+    make_env: Callable[[], TransformedEnv]  # a new evaluation env with the run's transforms
+    recipe: Recipe
+    step: int  # the checkpoint's gradient step
+    inputs: PolicyInput
+    device: torch.device  # where the policy's parameters are
+
+    def evaluate(self, episodes: int | None = None, seed: int | None = None) -> dict:
+        """The trainer's evaluation (same seeds, same figures) of this checkpoint."""
+        recipe = self.recipe
+        if episodes is not None:
+            recipe.eval.episodes = episodes
+        if seed is not None:
+            recipe.seed = seed
+        evaluator = Evaluator(recipe, self.inputs, self.policy, self.device)
+        try:
+            return evaluator.run()
+        finally:
+            evaluator.env.close()
+
+
+def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedPolicy:
+    """The policy of ``run_dir``'s checkpoint (finished or interrupted) on ``device``, with its env factory.
+
+    ``env`` replaces the recipe's ``eval.env`` (needed when the run had none).
+    """
+    run_dir = Path(run_dir)
+    for name in (RECIPE_FILE, CHECKPOINT):
+        if not (run_dir / name).is_file():
+            raise RMError(f"{run_dir} is not a run directory with a checkpoint: it has no {name}")
+    recipe = load_recipe(run_dir / RECIPE_FILE)
+    if env:
+        recipe.eval.env = env
+    if not recipe.eval.env:
+        raise RMError(f"{run_dir}'s recipe has no eval.env; give the gymnasium id of its environment")
+    state = load_checkpoint(run_dir / CHECKPOINT)
+    loc, scale = state["obs_loc"], state["obs_scale"]
+    events = load_event_spec(recipe.data.events) if recipe.data.events else None
+    obs_keys, obs_dim = ["observation"], loc.shape[-1]
+    if recipe.data.refine:
+        obs_keys.append(ENCODING_KEY)
+        obs_dim += EventOrderedRM(events.names).encoding_dim(recipe.rm.encoding)
+    probe = make_eval_env(recipe, PolicyInput(obs_keys, obs_dim, 0, loc, scale, events))
+    action_dim = probe.action_spec.shape[-1]
+    probe.close()
+    inputs = PolicyInput(obs_keys, obs_dim, action_dim, loc, scale, events)
+    target = resolve_device(device, "device")
+    method = build_method(recipe, obs_keys, obs_dim, action_dim, target)
+    try:
+        method.loss.load_state_dict(state["loss"])
+    except RuntimeError as err:
+        raise RMError(f"{run_dir / CHECKPOINT} does not fit the networks of its recipe: {str(err).splitlines()[0]}") from None
+    method.policy.eval()
+    return LoadedPolicy(method.policy, lambda: make_eval_env(recipe, inputs, target), recipe, int(state["step"]),
+                        inputs, target)
