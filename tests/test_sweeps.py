@@ -211,3 +211,16 @@ def test_load_policy_rolls_out_in_its_env_and_evaluates_like_the_trainer(tmp_pat
     assert printed["step"] == 20 and printed["episodes"] == 1 and printed["reward"] == "d4rl"
     assert main(["evaluate", str(tmp_path)]) == 2
     assert "is not a run directory with a checkpoint" in capsys.readouterr().err
+
+
+# --- logs --------------------------------------------------------------------------------------------
+
+def test_progress_written_to_a_pipe_is_whole_lines(tmp_path, dataset):
+    """A sweep's log is read as a file: no carriage-return redraws, the bar's state as whole lines."""
+    proc = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "train", str(tiny(tmp_path, dataset)),
+                           "trainer.steps=60"], capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr
+    bar = [line for line in proc.stderr.splitlines() if line.startswith("tiny:")]
+    assert bar[0].startswith("tiny:   0%") and "60/60" in bar[-1], proc.stderr
+

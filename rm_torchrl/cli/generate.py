@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import sys
 
-from tqdm import tqdm
+from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
 
@@ -57,7 +57,7 @@ def run(args) -> int:
     def progress(kept: int, total: int, attempts: int) -> None:
         nonlocal bar
         if bar is None:
-            bar = tqdm(total=total, desc=f"generate {args.generator}", unit="episode", file=sys.stderr, leave=False)
+            bar = progress_bar(total=total, desc=f"generate {args.generator}", unit="episode", file=sys.stderr, leave=False)
         bar.set_postfix_str(f"{attempts} attempts")
         bar.update(kept - bar.n)
 
@@ -93,7 +93,7 @@ def _run_cloned(args) -> int:
 
     def progress(stage: str, done: int, total: int) -> None:
         if stage not in bars:
-            bars[stage] = tqdm(total=total, desc=f"{args.generator} {stage}", file=sys.stderr, leave=False)
+            bars[stage] = progress_bar(total=total, desc=f"{args.generator} {stage}", file=sys.stderr, leave=False)
         bars[stage].total = total
         bars[stage].update(done - bars[stage].n)
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from tqdm import tqdm
+from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.d4rl_to_minari import IMPORT_METADATA_KEY, import_d4rl
 
@@ -31,7 +31,7 @@ def run(args) -> int:
     def progress(written: int, total: int) -> None:
         nonlocal bar
         if bar is None:  # opened on the first episode, so an early error prints no empty bar
-            bar = tqdm(total=total, desc="import", unit="episode", file=sys.stderr, leave=False)
+            bar = progress_bar(total=total, desc="import", unit="episode", file=sys.stderr, leave=False)
         bar.update(written - bar.n)
 
     try:

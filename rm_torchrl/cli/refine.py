@@ -5,7 +5,7 @@ import os
 import sys
 from pathlib import Path
 
-from tqdm import tqdm
+from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.store import check_out, write_refined
@@ -21,7 +21,7 @@ RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "a
 def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
     """Runs the pipeline stage by stage under a progress bar; returns ``(refined, report)``."""
     pipeline = make_refine_pipeline(spec, float(check_alpha(alpha)), constraints)
-    with tqdm(total=len(pipeline.transforms), desc=desc, unit="stage", file=sys.stderr, leave=False) as bar:
+    with progress_bar(total=len(pipeline.transforms), desc=desc, unit="stage", file=sys.stderr, leave=False) as bar:
 
         def on_stage(stage):
             bar.set_postfix_str(type(stage).__name__)

@@ -21,6 +21,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from rm_torchrl.progress import progress_bar
+
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.recipe import build_recipe, hydra_overrides, load_recipe, recipe_path, search_path_override
 
@@ -197,7 +199,7 @@ def run_many(runs: list[list[str]], jobs: int) -> None:
     jobs = max(1, jobs)
     threads = max(1, (os.cpu_count() or 1) // jobs)
     failures = []
-    with tqdm(total=len(runs), desc="runs", unit="run", file=sys.stderr) as bar:
+    with progress_bar(total=len(runs), desc="runs", unit="run", file=sys.stderr) as bar:
         pending = list(runs)
         running: list[tuple[subprocess.Popen, list]] = []
         while pending or running:

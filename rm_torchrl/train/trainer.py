@@ -22,6 +22,8 @@ import torch
 import yaml
 from tqdm import tqdm
 
+from rm_torchrl.progress import progress_bar
+
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import prepare_data
@@ -249,7 +251,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         return result
 
     # --- the loop ---------------------------------------------------------------------------
-    bar = tqdm(total=recipe.trainer.steps, initial=start, desc=recipe.name, unit="step",
+    bar = progress_bar(total=recipe.trainer.steps, initial=start, desc=recipe.name, unit="step",
                disable=not progress, file=sys.stderr, dynamic_ncols=True)
     shown: dict = {}
     completed = start

@@ -1,0 +1,57 @@
+"""Progress bars that suit where they are written: a live bar on a terminal, whole lines in a log.
+
+A bar redrawn with carriage returns turns a log file (a sweep's, a cluster job's) into one huge
+line; :func:`progress_bar` gives a normal ``tqdm`` bar on a terminal and otherwise a bar that prints
+its state as a whole line at most every ``LOG_INTERVAL`` seconds, and once at the end.
+"""
+from __future__ import annotations
+
+import sys
+
+from tqdm import tqdm
+
+LOG_INTERVAL = 30.0  # seconds between the lines of a bar written to a file or pipe
+
+
+class _Lines:
+    """The stream of a :class:`LineProgress`: tqdm's own redraw characters are dropped, lines pass."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text: str) -> None:
+        pass
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def line(self, text: str) -> None:
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+
+class LineProgress(tqdm):
+    """``tqdm`` that writes each refresh as its own line (no carriage returns, no cursor moves)."""
+
+    def __init__(self, *args, file=None, **kwargs):
+        self._printed = None
+        super().__init__(*args, file=_Lines(file or sys.stderr), **kwargs)
+
+    def display(self, msg: str | None = None, pos: int | None = None) -> bool:
+        if msg is None and self._printed != self.n:  # msg '' is tqdm clearing the bar: nothing to clear
+            self._printed = self.n
+            self.fp.line(self.__str__().strip())
+        return True
+
+
+def progress_bar(*args, file=None, **kwargs) -> tqdm:
+    """A ``tqdm`` bar on ``file`` (default stderr): live on a terminal, whole lines every 30 s elsewhere."""
+    file = file or sys.stderr
+    is_tty = getattr(file, "isatty", lambda: False)()
+    if is_tty:
+        return tqdm(*args, file=file, **kwargs)
+    kwargs.pop("dynamic_ncols", None)
+    kwargs.pop("leave", None)
+    kwargs.setdefault("mininterval", LOG_INTERVAL)
+    kwargs.setdefault("maxinterval", LOG_INTERVAL * 4)
+    return LineProgress(*args, file=file, ncols=100, leave=True, **kwargs)
