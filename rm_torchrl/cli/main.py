@@ -42,7 +42,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--constraint", action="append", type=_constraint, metavar="A<B",
                    help="event A must come before event B in the chosen order (repeatable)")
     p.add_argument("--out", metavar="DIR", help="output directory (data/ and report.json)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    p.add_argument("--minari-name", metavar="NAME",
+                   help="also write the refined data as the local Minari dataset NAME (namespace/name-vN): one "
+                        "episode per sub-trajectory, observations with the RM state")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output directory (and Minari dataset)")
     p.set_defaults(run="rm_torchrl.cli.refine:run")
 
     p = sub.add_parser("inspect", help="per-event statistics of a dataset")

@@ -8,11 +8,13 @@ from pathlib import Path
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.sources import load_dataset
+from rm_torchrl.data.refined_to_minari import check_minari_target, export_refined_minari
 from rm_torchrl.data.store import check_out, write_refined
 from rm_torchrl.errors import RMError, read_yaml
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, run_pipeline
 from rm_torchrl.refine.shortest import check_alpha
+from rm_torchrl.segments import run_starts
 
 #: Recipe keys and their defaults (None: required).
 RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "auto", "constraints": [], "out": None}
@@ -72,6 +74,8 @@ def run(args) -> int:
     opts = resolve_options(args)
     check_alpha(opts["alpha"])
     check_out(opts["out"], args.overwrite)  # before the work, not after it
+    if args.minari_name:
+        check_minari_target(args.minari_name, args.overwrite)
     spec = load_event_spec(opts["events"])
     print(f"loading {opts['dataset']} ...", file=sys.stderr)
     data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])
@@ -80,4 +84,10 @@ def run(args) -> int:
     out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
     print(report.table())
     print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
+    if args.minari_name:
+        dataset_id = export_refined_minari(refined, report.to_dict(), args.minari_name, str(opts["events"]), spec.names,
+                                           source=str(opts["dataset"]), overwrite=args.overwrite)
+        episodes = int(run_starts(refined.get("episode")).sum())
+        print(f"wrote the local Minari dataset {dataset_id}: {episodes:,} episodes (one per sub-trajectory), "
+              f"{refined.batch_size[0]:,} steps")
     return 0

@@ -44,7 +44,7 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
         )
     if use_local:
         _check_readable(dataset_id, local[dataset_id])
-    with tempfile.TemporaryDirectory() as root, _fixed_quiet_reader():
+    with tempfile.TemporaryDirectory() as root, fixed_minari_reader():
         try:
             buffer = MinariExperienceReplay(
                 dataset_id, batch_size=1, root=root, download=True, load_from_local_minari=use_local
@@ -61,7 +61,7 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
 
 
 @contextmanager
-def _fixed_quiet_reader():
+def fixed_minari_reader():
     """Make ``memmap_like`` copy content and mute TorchRL's INFO logs while TorchRL reads.
 
     TorchRL 0.14's Minari reader fills an in-memory TensorDict and only then calls ``memmap_like``,

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer, TensorStorage
 
+from rm_torchrl.data.refined_to_minari import export_record, split_rm_state
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
@@ -75,7 +77,15 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     report = None
     spec = load_event_spec(recipe.data.events) if recipe.data.events else None  # resolved once, passed down
     use_rm = recipe.data.refine
-    if use_rm:
+    exported = export_record(recipe.data.source) if use_rm and not Path(recipe.data.source).suffix else None
+    if exported is not None:  # refined before (rmrl refine --minari-name): its RM states are used as they are
+        if exported["events"]["names"] != list(spec.names):
+            raise RMError(f"{recipe.data.source} was refined with the events {exported['events']['names']}, "
+                          f"but data.events={recipe.data.events!r} declares {list(spec.names)}")
+        data = split_rm_state(raw)
+        report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha") if k in exported},
+                  "events": list(spec.names), "refined_before": exported["source"]}
+    elif use_rm:
         data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints)
         report = rep.to_dict()
     else:
