@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -224,3 +225,43 @@ def test_progress_written_to_a_pipe_is_whole_lines(tmp_path, dataset):
     bar = [line for line in proc.stderr.splitlines() if line.startswith("tiny:")]
     assert bar[0].startswith("tiny:   0%") and "60/60" in bar[-1], proc.stderr
 
+
+
+@pytest.mark.parametrize("suffix", [".gif", ".mp4"])
+def test_video_of_a_checkpoint_shows_real_frames_with_the_rm_state(tmp_path, dataset, suffix):
+    import imageio.v2 as imageio
+
+    path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 6, every: 10, episodes: 1, score: door}\n")
+    run_dir = train(load_recipe(path, ["trainer.steps=10"]), progress=False)
+    video = tmp_path / f"episode{suffix}"
+    proc = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "evaluate", str(run_dir), "--episodes", "1",
+                           "--video", str(video)], capture_output=True, text=True,
+                          env={**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    frames = imageio.mimread(video)
+    assert len(frames) == 7  # the reset and 6 steps
+    frame = np.asarray(frames[-1])[..., :3]
+    strip, scene = frame[:40], frame[44:]
+    assert scene.std() > 10 and np.abs(scene.astype(int) - np.asarray(frames[0])[44:, :, :3]).mean() > 0  # it moves
+    assert strip.mean() < 80 and strip.max() > 200  # light caption text on the dark strip
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # the temporary file was renamed
+
+
+def test_rm_caption_names_the_events_in_their_order():
+    from rm_torchrl.train.video import rm_caption
+
+    assert rm_caption(torch.tensor([2, 1, 0]), ["a", "b", "c"]) == ("RM: e0 > b > a", "events 2/3")
+
+
+def test_report_embeds_a_gif_of_each_final_policy(tmp_path, dataset):
+    path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 8, every: 10, episodes: 1, score: door}\n")
+    run_dir = train(load_recipe(path, ["trainer.steps=10"]), progress=False)
+    out = tmp_path / "report"
+    proc = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "report", str(run_dir), "--out", str(out),
+                           "--gifs", "--gif-steps", "3"], capture_output=True, text=True,
+                          env={**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    assert "![tiny-seed0](gifs/tiny-seed0.gif)" in (out / "results.md").read_text()
+    from PIL import Image
+
+    assert Image.open(out / "gifs" / "tiny-seed0.gif").n_frames == 4

@@ -10,6 +10,9 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, help="environment seed (default: the run's seed)")
     p.add_argument("--device", default="cpu", help="where the policy runs: cpu (default), cuda, cuda:N, auto")
     p.add_argument("--json", action="store_true", help="print JSON instead of a line of figures")
+    p.add_argument("--video", metavar="FILE", help="also render episodes to FILE (.mp4 or .gif) with the RM state "
+                                                 "drawn on each frame (MUJOCO_GL=egl without a display)")
+    p.add_argument("--video-episodes", type=int, default=1, help="episodes in the video (default 1)")
 
 
 def run(args) -> int:
@@ -20,10 +23,13 @@ def run(args) -> int:
         raise RMError(f"--episodes must be positive, got {args.episodes}")
     loaded = load_policy(args.run_dir, device=args.device)
     result = {"run": str(args.run_dir), "step": loaded.step, **loaded.evaluate(args.episodes, args.seed)}
+    if args.video:
+        result["video"] = str(loaded.video(args.video, episodes=args.video_episodes, seed=args.seed))
     if args.json:
         print(json.dumps(result))
     else:
         print(f"{args.run_dir} at step {result['step']}: return {result['return_mean']:.1f} ± {result['return_std']:.1f} "
               f"({result['reward']} reward), score {result['score']:.1f}, success {result['success_rate']:.2f}, "
-              f"events {result['events_mean']:.2f} over {result['episodes']} episodes")
+              f"events {result['events_mean']:.2f} over {result['episodes']} episodes"
+              + (f"; video: {result['video']}" if args.video else ""))
     return 0

@@ -27,6 +27,10 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="dataset label: the recipe name minus seed and method suffixes (default), "
                         "or the stem of data.source")
     p.add_argument("--decimals", type=int, default=1, help="decimals in Table 1 (default 1)")
+    p.add_argument("--gifs", action="store_true",
+                   help="render one episode of each run's final policy as a GIF and embed it (MUJOCO_GL=egl "
+                        "without a display)")
+    p.add_argument("--gif-steps", type=int, default=100, help="steps per GIF (default 100)")
     return p
 
 
@@ -71,12 +75,32 @@ def run(args) -> int:
         written.append(plot_dataset_sizes(runs, out / SIZES))
     elif (out / SIZES).is_file():
         (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
-    _write_text(out / RESULTS, results_markdown(runs, groups, args.decimals, figures, skipped))
+    text = results_markdown(runs, groups, args.decimals, figures, skipped)
+    if args.gifs:
+        text += _gifs(runs, out, args.gif_steps)
+    _write_text(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))
     print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} runs)", file=sys.stderr)
     return 0
+
+
+def _gifs(runs, out: Path, steps: int) -> str:
+    """A GIF of one episode of each run's last checkpoint, and the Markdown that shows them."""
+    from rm_torchrl.train.policy import load_policy
+
+    if steps < 1:
+        raise RMError(f"--gif-steps must be positive, got {steps}")
+    (out / "gifs").mkdir(exist_ok=True)
+    lines = ["", "## Final policies", ""]
+    for run in sorted(runs, key=lambda r: r.path.name):
+        loaded = load_policy(run.path)
+        loaded.recipe.eval.max_steps = min(steps, loaded.recipe.eval.max_steps)
+        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15)
+        lines.append(f"**{run.path.name}** ({run.method}, step {loaded.step}): ![{run.path.name}](gifs/{gif.name})")
+        lines.append("")
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -38,8 +38,12 @@ def reward_convention(recipe: Recipe) -> tuple[str, str | None]:
     return ("d4rl" if task else "env"), task
 
 
-def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str = "cpu") -> TransformedEnv:
-    """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back."""
+def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str = "cpu",
+                  render: tuple[int, int] | None = None) -> TransformedEnv:
+    """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back.
+
+    ``render=(width, height)`` makes the MuJoCo env render rgb arrays (``env.base_env.render()``).
+    """
     import gymnasium as gym
     import gymnasium_robotics
     from torchrl.envs import GymEnv
@@ -48,7 +52,8 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
 
     gym.register_envs(gymnasium_robotics)
     try:
-        base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs)
+        extra = {"render_mode": "rgb_array", "width": render[0], "height": render[1]} if render else {}
+        base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs, **extra)
     except Exception as err:  # gymnasium raises many types for a bad id or kwargs
         raise RMError(f"cannot make eval env {recipe.eval.env!r}: {type(err).__name__}: {err}") from None
     transforms = [StepCounter(max_steps=recipe.eval.max_steps)]

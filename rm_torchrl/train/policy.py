@@ -36,7 +36,7 @@ from rm_torchrl.train.trainer import resolve_device
 @dataclass
 class LoadedPolicy:
     policy: TensorDictModule  # reads the observation (and RM encoding) keys, writes "action"
-    make_env: Callable[[], TransformedEnv]  # a new evaluation env with the run's transforms
+    make_env: Callable[..., TransformedEnv]  # a new evaluation env with the run's transforms (render=(w, h))
     recipe: Recipe
     step: int  # the checkpoint's gradient step
     inputs: PolicyInput
@@ -54,6 +54,20 @@ class LoadedPolicy:
             return evaluator.run()
         finally:
             evaluator.env.close()
+
+    def video(self, path, episodes: int = 1, seed: int | None = None, size: tuple[int, int] = (320, 320),
+              fps: int = 20) -> Path:
+        """``episodes`` rendered episodes as ``path`` (.gif or .mp4), the RM state on every frame."""
+        from rm_torchrl.train.video import render_episodes, write_video
+
+        env = self.make_env(render=size)
+        try:
+            names = list(self.inputs.events.names) if self.inputs.events is not None else None
+            frames = render_episodes(env, self.policy, episodes, self.recipe.eval.max_steps, names,
+                                     self.recipe.seed if seed is None else seed)
+        finally:
+            env.close()
+        return write_video(frames, path, fps)
 
 
 def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedPolicy:
@@ -88,5 +102,5 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     except RuntimeError as err:
         raise RMError(f"{run_dir / CHECKPOINT} does not fit the networks of its recipe: {str(err).splitlines()[0]}") from None
     method.policy.eval()
-    return LoadedPolicy(method.policy, lambda: make_eval_env(recipe, inputs, target), recipe, int(state["step"]),
-                        inputs, target)
+    return LoadedPolicy(method.policy, lambda render=None: make_eval_env(recipe, inputs, target, render), recipe,
+                        int(state["step"]), inputs, target)
