@@ -138,3 +138,53 @@ def test_door_human():
     assert list(label.stats["episodes_reaching"].values()) == [s["episodes_firing"] for s in stats]
     table = format_event_table(stats)
     assert "door_1.35" in table and table.splitlines()[0].startswith("25 episodes")
+
+
+# --- timelines (rmrl inspect --plot) ------------------------------------------------------------------
+
+def _door_like(transitions=3000):
+    from rm_torchrl.data.synthetic import make_door_like
+
+    return make_door_like(transitions, episode_length=100, seed=0)
+
+
+def test_timelines_show_what_refinement_keeps():
+    from rm_torchrl.refine.pipeline import refine
+    from rm_torchrl.refine.timeline import event_timelines
+
+    td = _door_like()
+    t = event_timelines(td, "door", alpha=0.5, episodes=3, seed=1)
+    refined, report = refine(td, "door", 0.5)
+    assert t.order == report.order and len(t.episodes) == 3
+    assert {k: v.size for k, v in t.lengths.items()} == report.groups  # every group of the best order, whole
+    for key, lengths in t.lengths.items():
+        kept = -(-lengths.size // 2)  # ceil(0.5 n)
+        assert (lengths <= t.cuts[key]).sum() >= kept and (lengths < t.cuts[key]).sum() < kept
+    for ep in t.episodes:
+        rows = td["episode"] == ep.episode
+        holds = td.get("observation")[rows]  # the episode's own rows, in order
+        assert ep.holds.shape == (holds.shape[0], 4) and ep.fires.shape == ep.holds.shape
+        assert (ep.rm_level[1:] >= ep.rm_level[:-1]).all() and ep.rm_level[0] == 0
+        assert ep.rm_level[-1] + ep.fires[-1].any() >= len(ep.rm_events) >= ep.rm_level[-1]
+
+
+def test_inspect_plot_writes_a_png(tmp_path, capsys):
+    import h5py
+    import numpy as np
+
+    from rm_torchrl.cli.main import main
+
+    td = _door_like()
+    path = tmp_path / "door.hdf5"
+    with h5py.File(path, "w") as f:  # D4RL layout: one step more per episode than transitions is not needed here
+        f["observations"] = td["observation"].numpy()
+        f["actions"] = td["action"].numpy()
+        f["rewards"] = np.zeros(td.batch_size[0], np.float32)
+        f["terminals"] = td["next", "truncated"].squeeze(-1).numpy()
+        f["timeouts"] = np.zeros(td.batch_size[0], bool)
+    png = tmp_path / "timeline.png"
+    assert main(["inspect", "--dataset", str(path), "--events", "door", "--plot", str(png), "--alpha", "0.5",
+                 "--plot-episodes", "2"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert "wrote" in capsys.readouterr().err
+    assert main(["inspect", "--dataset", str(path), "--events", "door", "--plot", str(tmp_path / "x.jpg")]) == 2

@@ -51,6 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("inspect", help="per-event statistics of a dataset")
     _add_source(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--plot", metavar="FILE.png", help="also draw event timelines: per episode when each event holds "
+                                                      "and fires over the RM state, per group the lengths and alpha's cut")
+    p.add_argument("--plot-episodes", type=int, default=6, help="episodes drawn (a seeded sample; default 6)")
+    p.add_argument("--alpha", default="1.0", help="the alpha whose cut the length histograms mark (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the episode sample")
     p.set_defaults(run="rm_torchrl.cli.inspect_events:run")
 
     p = sub.add_parser("rm-graph", help="draw the event-ordered RM (Graphviz DOT or Mermaid)")

@@ -144,3 +144,57 @@ def plot_dataset_sizes(runs: Iterable[Run], path: str | os.PathLike) -> Path:
     ax.set_axisbelow(True)
     fig.legend(loc="outside right upper", fontsize=8, frameon=False)
     return _save(fig, path)
+
+
+#: Background of the RM state bands: 0 events occurred, 1, 2, ... (the paper's Figure 3 colours the states)
+RM_BAND_COLORS = ("#f0f0f0", "#fde0c5", "#c7e9c0", "#c6dbef", "#dadaeb", "#fcbba1", "#d9f0a3", "#bcbddc")
+
+
+def plot_event_timelines(timelines, path: str | os.PathLike) -> Path:
+    """Per episode, when each event holds (bars) and fires (triangles) over the RM state's bands, and per
+    group of the best order the histogram of sub-trajectory lengths with alpha's cut (``refine.timeline``)."""
+    episodes, groups = timelines.episodes, list(timelines.lengths)
+    if not episodes:
+        raise RMError("no episodes to draw")
+    n, cols = len(timelines.events), max(1, len(groups))
+    fig = _figure(figsize=(max(9.0, 2.6 * cols), 1.1 + 0.32 * n * len(episodes) + 2.6))
+    grid = fig.add_gridspec(len(episodes) + 1, cols, height_ratios=[max(1.0, 0.32 * n)] * len(episodes) + [2.4])
+    colors = method_colors([f"{i}" for i in range(n)])
+    for row, ep in enumerate(episodes):
+        ax = fig.add_subplot(grid[row, :])
+        steps = np.arange(len(ep.rm_level))
+        change = np.flatnonzero(np.diff(ep.rm_level)) + 1
+        for lo, hi in zip(np.r_[0, change], np.r_[change, len(steps)]):
+            ax.axvspan(lo, hi, color=RM_BAND_COLORS[int(ep.rm_level[lo]) % len(RM_BAND_COLORS)], lw=0)
+        for i in range(n):
+            color = colors[f"{i}"]
+            held = ep.holds[:, i]
+            edges = np.flatnonzero(np.diff(np.r_[0, held.astype(int), 0]))
+            for lo, hi in zip(edges[::2], edges[1::2]):
+                ax.plot([lo, hi], [i, i], color=color, lw=4, solid_capstyle="butt")
+            fired = np.flatnonzero(ep.fires[:, i])
+            ax.scatter(fired, np.full(fired.size, i + 0.35), marker="v", color=color, s=22, zorder=3)
+        ax.set_yticks(range(n), timelines.events if row == 0 or n <= 4 else [""] * n, fontsize=7)
+        ax.set_ylim(-0.6, n - 0.2)
+        ax.set_xlim(0, max(1, len(steps)))
+        ax.invert_yaxis()
+        order = " > ".join(["e0", *ep.rm_events])
+        ax.set_title(f"episode {ep.episode}: {len(steps)} steps, RM {order}", fontsize=8, loc="left")
+        ax.tick_params(axis="x", labelsize=7)
+    for col, key in enumerate(groups):
+        ax = fig.add_subplot(grid[-1, col])
+        lengths = timelines.lengths[key]
+        if lengths.size:
+            ax.hist(lengths, bins=min(30, max(5, lengths.size // 2)), color="#6baed6")
+            cut = timelines.cuts[key]
+            ax.axvline(cut, color="#d62728", ls="--", lw=1.2)
+            kept = int((lengths <= cut).sum())
+            ax.set_title(f"{key}\n{lengths.size} pieces, α={timelines.alpha:g} keeps ≤ {cut} steps ({kept})",
+                         fontsize=7)
+        else:
+            ax.set_title(f"{key}\n(empty)", fontsize=7)
+        ax.set_xlabel("sub-trajectory length (steps)", fontsize=7)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"Events and RM states (best order: {' > '.join(timelines.order)}); ▼ = event fires, "
+                 "bar = event holds, bands = RM state", fontsize=9)
+    return _save(fig, path)
