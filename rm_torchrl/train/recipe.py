@@ -98,9 +98,27 @@ def load_recipe(path=None, overrides=()) -> Recipe:
     return build_recipe(compose_recipe(path, overrides), recipe_path(path).parent)
 
 
+#: Method entries of recipes written before the method section had one sub-section per method family.
+_RENAMED = {"expectile": ("iql", "expectile"), "temperature": ("iql", "temperature"),
+            "actor_dropout": ("iql", "actor_dropout"), "cql_alpha": ("cql", "min_q_weight"),
+            "bcq_lambda": ("bcq", "lmbda"), "bcq_phi": ("bcq", "phi"), "bcq_vae_hidden": ("bcq", "vae_hidden")}
+
+
+def _upgrade(raw: dict) -> dict:
+    """A run's ``recipe.yaml`` from before the method sub-sections, in today's layout (same values)."""
+    method = raw.get("method")
+    if isinstance(method, dict) and any(k in method for k in _RENAMED):
+        for old, (section, new) in _RENAMED.items():
+            if old in method:
+                method.setdefault(section, {})[new] = method.pop(old)
+        if method.get("name") == "iql" and (raw.get("data") or {}).get("refine", True):
+            method["name"] = "ours"  # IQL on the refined data was the paper's method, now named ours
+    return raw
+
+
 def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
     """A composed config checked against the schema: typed sections, valid choices, finite numbers."""
-    raw = OmegaConf.to_container(cfg, resolve=False)
+    raw = _upgrade(OmegaConf.to_container(cfg, resolve=False))
     raw.pop("hydra", None)
     try:
         recipe = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Recipe), raw))
