@@ -125,6 +125,10 @@ def report(args) -> None:
     fresh = {p.name for p in Path(args.out).iterdir()} if Path(args.out).is_dir() else set()
     earlier = [p for p in sorted((results / "runs").glob("*")) if p.is_dir() and p.name not in fresh]
     runs = load_runs([p for p in [Path(args.out), *earlier] if p.exists()], skipped=skipped)
+    budget = {LABELS[m]: steps for m, (steps, _) in BUDGETS.items()}
+    unfinished = [r for r in runs if r.final_step < budget.get(r.method, 0)]
+    skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {budget[r.method]:,} steps)" for r in unfinished]
+    runs = [r for r in runs if r not in unfinished]
     groups = group_runs(runs)
     (results / "runs").mkdir(parents=True, exist_ok=True)
     summary = []

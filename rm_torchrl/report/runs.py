@@ -15,7 +15,8 @@ Labels (documented rules, so a table never depends on how a directory happens to
   When the name is empty or the default ``run``, or with ``dataset_from="source"``, the label is
   ``data.source``'s stem instead: ``.../door-human-v0.hdf5`` -> ``door-human-v0``,
   ``minari:D4RL/door/human-v2`` -> ``door-human-v2``.
-* **method** -- ``Ours`` for IQL on refined data (``data.refine: true``, the paper's method);
+* **method** -- ``Ours`` for ``method.name: ours`` (IQL on refined data, the paper's method; also
+  ``iql`` with ``data.refine: true``, as runs recorded it before);
   otherwise the upper-cased ``method.name`` (``BC``, ``BCQ``, ``IQL``, ``CQL``), with
   `` (refined)`` appended when a baseline was itself trained on refined data, so refined and raw
   runs never share a column.
@@ -89,7 +90,7 @@ def method_label(recipe: dict) -> str:
     """``Ours`` for IQL on refined data, else the upper-cased method (`` (refined)`` if refined)."""
     name = str((recipe.get("method") or {}).get("name") or "iql").lower()
     refined = bool((recipe.get("data") or {}).get("refine", False))
-    if refined and name == "iql":
+    if name == "ours" or (refined and name == "iql"):  # runs from before method "ours" had its name
         return OURS
     return name.upper() + (" (refined)" if refined else "")
 
