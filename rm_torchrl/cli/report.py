@@ -76,8 +76,8 @@ def run(args) -> int:
     elif (out / SIZES).is_file():
         (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
     text = results_markdown(runs, groups, args.decimals, figures, skipped)
-    if args.gifs:
-        text += _gifs(runs, out, args.gif_steps)
+    if getattr(args, "gifs", False):  # callers building their own Namespace (rmrl demo) leave it out
+        text += _gifs(runs, out, getattr(args, "gif_steps", 100))
     _write_text(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
