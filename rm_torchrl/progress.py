@@ -34,14 +34,23 @@ class LineProgress(tqdm):
     """``tqdm`` that writes each refresh as its own line (no carriage returns, no cursor moves)."""
 
     def __init__(self, *args, file=None, **kwargs):
-        self._printed = None
+        self._printed, self._printed_at, self._closing = None, float("-inf"), False
         super().__init__(*args, file=_Lines(file or sys.stderr), **kwargs)
 
     def display(self, msg: str | None = None, pos: int | None = None) -> bool:
-        if msg is None and self._printed != self.n:  # msg '' is tqdm clearing the bar: nothing to clear
-            self._printed = self.n
-            self.fp.line(self.__str__().strip())
+        """A line at most every ``mininterval`` seconds (``set_postfix`` refreshes too), and the last state."""
+        if msg is not None or self._printed == self.n:  # msg '' is tqdm clearing the bar: nothing to clear
+            return True
+        now = self._time()
+        if self._printed is not None and now - self._printed_at < self.mininterval and not self._closing:
+            return True
+        self._printed, self._printed_at = self.n, now
+        self.fp.line(self.__str__().strip())
         return True
+
+    def close(self) -> None:
+        self._closing = True
+        super().close()
 
 
 def progress_bar(*args, file=None, **kwargs) -> tqdm:

@@ -216,6 +216,20 @@ def test_load_policy_rolls_out_in_its_env_and_evaluates_like_the_trainer(tmp_pat
 
 # --- logs --------------------------------------------------------------------------------------------
 
+def test_a_bar_in_a_file_prints_its_first_and_last_state_despite_postfix_refreshes():
+    import io
+
+    from rm_torchrl.progress import progress_bar
+
+    stream = io.StringIO()
+    with progress_bar(total=100, desc="g", file=stream) as bar:
+        for i in range(100):
+            bar.update()
+            bar.set_postfix_str(f"episode {i}")  # refreshes the bar each time
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2 and "0/100" in lines[0] and "100/100" in lines[1] and "\r" not in stream.getvalue()
+
+
 def test_progress_written_to_a_pipe_is_whole_lines(tmp_path, dataset):
     """A sweep's log is read as a file: no carriage-return redraws, the bar's state as whole lines."""
     proc = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "train", str(tiny(tmp_path, dataset)),
