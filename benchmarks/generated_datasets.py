@@ -9,7 +9,8 @@ For each dataset this runs the real commands a user would run, in order:
 and writes ``results.md`` (one table: size, generation time, episodes in which each event holds,
 the refine stage table and the best order) and ``results.json`` to ``--out``, atomically; rows of
 generators not run this time (``--only``) are kept from an earlier ``results.json`` there.
-Full sizes follow D4RL: kitchen-partial/-mixed 265 episodes (about 137k transitions, as D4RL's 136,950),
+Full sizes follow D4RL: kitchen-partial/-mixed 360 episodes (about 137k transitions, as D4RL's 136,950, at the
+play's D4RL pace: 100,733 transitions in 265 episodes),
 relocate-human 25 demonstrations, door-/relocate-cloned 1M transitions. ``--scale`` shrinks all of
 them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH``).
 
@@ -34,8 +35,8 @@ from pathlib import Path
 
 #: name, event spec, alpha (the paper's), and the size flags at full scale
 DATASETS = [
-    ("kitchen-partial", "kitchen", 0.5, {"episodes": 265}),
-    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 265}),
+    ("kitchen-partial", "kitchen", 0.5, {"episodes": 360}),
+    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 360}),
     ("relocate-human", "relocate", 1.0, {"episodes": 25}),
     ("door-cloned", "door", 0.5, {"steps": 1_000_000}),
     ("relocate-cloned", "relocate", 1.0, {"steps": 1_000_000}),

@@ -128,7 +128,7 @@ class KitchenPlayController:
 
     def __init__(self, mix: str = "partial", noise: float = 0.1, jitter: float = 0.2, all_goals: float = 0.3,
                  fail: float = 0.05, pause: float = 0.3, detour: float = 0.2, damping: float = 0.05,
-                 travel: float = 1.5, gain: float = 1.5):
+                 travel: float = 1.5, gain: float = 1.5, pull: float = 0.25):
         if mix not in MIXES:
             raise RMError(f"unknown kitchen mix {mix!r}; expected one of {', '.join(MIXES)}")
         for key, value in dict(noise=noise, jitter=jitter, all_goals=all_goals, fail=fail, pause=pause,
@@ -136,18 +136,18 @@ class KitchenPlayController:
             if not np.isfinite(value) or value < 0 or (key not in ("noise", "damping") and value > 1):
                 raise RMError(f"kitchen option {key} must be {'>= 0' if key in ('noise', 'damping') else 'in [0, 1]'}, "
                               f"got {value}")
-        for key, value in dict(travel=travel, gain=gain).items():
+        for key, value in dict(travel=travel, gain=gain, pull=pull).items():
             if not np.isfinite(value) or value <= 0:
                 raise RMError(f"kitchen option {key} must be > 0, got {value}")
         self.mix, self.noise, self.jitter, self.all_goals = mix, float(noise), float(jitter), float(all_goals)
         self.fail, self.pause, self.detour, self.damping = float(fail), float(pause), float(detour), float(damping)
-        self.travel, self.gain = float(travel), float(gain)
+        self.travel, self.gain, self.pull = float(travel), float(gain), float(pull)
 
     def settings(self) -> dict:
         """The constructor's parameters, for the dataset metadata."""
         return {"controller": self.name, "mix": self.mix, "noise": self.noise, "jitter": self.jitter,
                 "all_goals": self.all_goals, "fail": self.fail, "pause": self.pause, "detour": self.detour,
-                "damping": self.damping, "travel": self.travel, "gain": self.gain, "threshold": THRESHOLD, "tasks": list(TASKS), "goal_tasks": list(GOAL_TASKS)}
+                "damping": self.damping, "travel": self.travel, "gain": self.gain, "pull": self.pull, "threshold": THRESHOLD, "tasks": list(TASKS), "goal_tasks": list(GOAL_TASKS)}
 
     # ------------------------------------------------------------------ episode set-up
 
@@ -295,7 +295,7 @@ class KitchenPlayController:
             seg.comfort, seg.posture = MICROWAVE_COMFORT, 0.1
         for angle in np.linspace(0.0, -self._j(0.9, 1.1), 6)[1:]:
             rz = _rz(angle)
-            segs.append(Segment(hinge + rz @ (handle - hinge), _rz(0.5 * angle) @ rot, CLOSED, 0.25 * self.speed,
+            segs.append(Segment(hinge + rz @ (handle - hinge), _rz(0.5 * angle) @ rot, CLOSED, self.pull * self.speed,
                                 tol=0.03, steps=25, until_done=True))
         return segs
 
