@@ -64,7 +64,7 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
 
 @pytest.mark.parametrize("override,message", [
     ("dataset=nope", "Could not find 'dataset/nope'"),
-    ("method=sac", "Could not find 'method/sac'"),
+    ("method=sac", "Could not find 'method/sac'; available options in 'method': bc, bcq, cql, iql, ours$"),
     ("optim.weight_decay_q=1e-3x", "optim.weight_decay_q"),
 ])
 def test_bad_choices_are_one_line_errors(override, message):

@@ -144,7 +144,13 @@ def _allowed(key: str) -> list[str] | None:
 
 
 def _one_line(err: Exception) -> str:
-    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    text = str(err)
+    if "Available options in" in text:  # Hydra lists a group's options one per line: keep them, on one line
+        head, _, options = text.partition("Available options in")
+        group, _, names = options.partition(":")
+        names = names.split("Config search path")[0]  # the search path Hydra appends
+        return f"{head.strip()}; available options in{group}: {', '.join(names.split())}"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
     cause = err.__cause__
     if cause is not None and str(cause).strip():
         lines.append(str(cause).strip().splitlines()[0])
