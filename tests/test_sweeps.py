@@ -207,6 +207,7 @@ def test_load_policy_rolls_out_in_its_env_and_evaluates_like_the_trainer(tmp_pat
     row = (run_dir / "eval.csv").read_text().splitlines()[-1].split(",")
     result = loaded.evaluate()
     assert [round(result[k], 6) for k in ("return_mean", "return_std")] == [float(row[1]), float(row[2])]
+    assert loaded.evaluate(episodes=1)["episodes"] == 1 and loaded.recipe.eval.episodes == 2  # no side effect
     assert main(["evaluate", str(run_dir), "--json", "--episodes", "1"]) == 0
     printed = __import__("json").loads(capsys.readouterr().out)
     assert printed["step"] == 20 and printed["episodes"] == 1 and printed["reward"] == "d4rl"

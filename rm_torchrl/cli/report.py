@@ -96,8 +96,8 @@ def _gifs(runs, out: Path, steps: int) -> str:
     lines = ["", "## Final policies", ""]
     for run in sorted(runs, key=lambda r: r.path.name):
         loaded = load_policy(run.path)
-        loaded.recipe.eval.max_steps = min(steps, loaded.recipe.eval.max_steps)
-        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15)
+        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15,
+                           max_steps=min(steps, loaded.recipe.eval.max_steps))
         lines.append(f"**{run.path.name}** ({run.method}, step {loaded.step}): ![{run.path.name}](gifs/{gif.name})")
         lines.append("")
     return "\n".join(lines) + "\n"

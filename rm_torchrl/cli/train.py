@@ -75,17 +75,13 @@ def _statuses_of(runs: list[tuple[str | None, list[str]]]) -> list[tuple[Path, s
     return [(r.run_dir, run_status(r)) for r in recipes]
 
 
-def _statuses(path, combos: list[list[str]]) -> list[tuple[Path, str]]:
-    return _statuses_of([(path, combo) for combo in combos])
-
-
 def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     """The sweep of ``overrides`` through Hydra (its launcher and sweeper), resumable run by run."""
     import hydra
 
     primary = recipe_path(path)
     combos = _sweep_combinations(path, overrides)
-    before = _statuses(path, combos) if combos is not None else []
+    before = _statuses_of([(path, c) for c in combos]) if combos is not None else []
     done = sum(s == "finished" for _, s in before)
     failed = [str(d) for d, s in before if s == "failed"]
     if done:
@@ -113,7 +109,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
         sys.argv = saved
     if combos is None:
         return 0
-    after = _statuses(path, combos)
+    after = _statuses_of([(path, c) for c in combos])
     left = [str(d) for d, s in after if s != "finished"]
     if left:
         raise RMError(f"{len(left)} of {len(after)} runs did not finish (see the messages above): {left}")

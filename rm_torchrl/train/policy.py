@@ -12,6 +12,7 @@ mean action) unless an exploration type says otherwise.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -44,7 +45,7 @@ class LoadedPolicy:
 
     def evaluate(self, episodes: int | None = None, seed: int | None = None) -> dict:
         """The trainer's evaluation (same seeds, same figures) of this checkpoint."""
-        recipe = self.recipe
+        recipe = copy.deepcopy(self.recipe)  # this call's episodes and seed only
         if episodes is not None:
             recipe.eval.episodes = episodes
         if seed is not None:
@@ -56,14 +57,14 @@ class LoadedPolicy:
             evaluator.env.close()
 
     def video(self, path, episodes: int = 1, seed: int | None = None, size: tuple[int, int] = (320, 320),
-              fps: int = 20) -> Path:
+              fps: int = 20, max_steps: int | None = None) -> Path:
         """``episodes`` rendered episodes as ``path`` (.gif or .mp4), the RM state on every frame."""
         from rm_torchrl.train.video import render_episodes, write_video
 
         env = self.make_env(render=size)
         try:
             names = list(self.inputs.events.names) if self.inputs.events is not None else None
-            frames = render_episodes(env, self.policy, episodes, self.recipe.eval.max_steps, names,
+            frames = render_episodes(env, self.policy, episodes, max_steps or self.recipe.eval.max_steps, names,
                                      self.recipe.seed if seed is None else seed)
         finally:
             env.close()

@@ -47,25 +47,18 @@ def render_episodes(env, policy, episodes: int, max_steps: int, event_names: lis
     env.set_seed(seed)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         for episode in range(episodes):
-            td = env.reset()
-            total = 0.0
+            td, total, done = env.reset(), 0.0, False
             for step in range(max_steps + 1):
-                lines = [f"episode {episode + 1}/{episodes}  step {step}  return {total:.1f}"]
+                lines = [f"episode {episode + 1}/{episodes}  step {step}  return {total:.1f}" + ("  (done)" if done else "")]
                 if event_names and "rm_state" in td.keys():
                     lines += list(rm_caption(td["rm_state"].cpu(), event_names))
                 frames.append(caption(np.asarray(env.base_env.render()), lines))
-                if step == max_steps:
+                if done or step == max_steps:
                     break
                 td = env.step(policy(td))
                 total += float(td["next", "reward"].sum())
                 done = bool(td["next", "done"].any())
                 td = step_mdp(td)
-                if done:
-                    lines = [f"episode {episode + 1}/{episodes}  step {step + 1}  return {total:.1f}  (done)"]
-                    if event_names and "rm_state" in td.keys():
-                        lines += list(rm_caption(td["rm_state"].cpu(), event_names))
-                    frames.append(caption(np.asarray(env.base_env.render()), lines))
-                    break
     return frames
 
 
