@@ -275,3 +275,12 @@ def test_nan_in_a_minari_dataset_is_refused(minari_cache, key):
     name = {"rewards": "next/reward", "actions": "action"}[key]
     with pytest.raises(RMError, match=rf"tiny/nan-v0: {name} holds NaN or inf in 1 transition\(s\), first at \[1\]"):
         load_dataset("tiny/nan-v0")
+
+
+def test_reading_into_a_log_file_prints_no_per_episode_progress(minari_cache, capfd):
+    """TorchRL's reader redraws its bar once per episode; in a log file each redraw is a line."""
+    _write_dataset("tiny/quiet-v0")
+    capfd.readouterr()
+    load_minari("tiny/quiet-v0")
+    out, err = capfd.readouterr()
+    assert "episode num" not in out + err

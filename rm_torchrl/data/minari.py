@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import tempfile
 from contextlib import contextmanager
 from unittest import mock
@@ -17,7 +18,7 @@ from unittest import mock
 import minari
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data.datasets import MinariExperienceReplay
+from torchrl.data.datasets import MinariExperienceReplay, minari_data
 
 from rm_torchrl.errors import RMError
 
@@ -67,13 +68,15 @@ def fixed_minari_reader():
     TorchRL 0.14's Minari reader fills an in-memory TensorDict and only then calls ``memmap_like``,
     which writes a content-less copy: every value comes back as zero. ``memmap`` writes the same
     files with the content; if a later TorchRL preallocates before filling, the swap is harmless.
-    The reader also logs the whole TensorDict structure to stdout, which would pollute CLI output.
+    The reader also logs the whole TensorDict structure to stdout, which would pollute CLI output,
+    and its tqdm bar is kept only on a terminal (in a log file it is one line per episode).
     """
     logger = logging.getLogger("torchrl")
     level = logger.level
     logger.setLevel(max(level, logging.WARNING))
     try:
-        with mock.patch.object(TensorDict, "memmap_like", TensorDict.memmap):
+        with mock.patch.object(TensorDict, "memmap_like", TensorDict.memmap), \
+                mock.patch.object(minari_data, "_has_tqdm", minari_data._has_tqdm and sys.stderr.isatty()):
             yield
     finally:
         logger.setLevel(level)
