@@ -45,6 +45,8 @@ DATASETS = {
 BUDGETS = {"ours": (50_000, list(DATASETS)), "iql": (50_000, list(DATASETS)), "bc": (50_000, list(DATASETS)),
            "cql": (10_000, ["door-human-v0"]), "bcq": (10_000, ["door-human-v0"])}
 SEEDS = (0, 1, 2)
+#: hand-written analysis beside the generated results.md (kept by the report, linked from it)
+FINDINGS = "findings.md"
 LABELS = {"ours": "Ours", "iql": "IQL", "bc": "BC", "cql": "CQL", "bcq": "BCQ"}
 #: the paper's Table 1 (average D4RL return over 3 seeds after 0.5M steps) and Table 2 (transitions)
 PAPER = {
@@ -113,6 +115,25 @@ def setup(args) -> None:
         rmrl("generate", name, "--out-name", dataset_id, *flags, "--seed", "0", "--workers", str(args.jobs))
 
 
+def missing_cells(runs) -> list[str]:
+    """``dataset / method: k of n seeds finished`` for every cell of the grid short of its seeds."""
+    done = {}
+    for r in runs:
+        done.setdefault((r.dataset, r.method), set()).add(r.seed)
+    out = []
+    for dataset in DATASETS:
+        for method, (steps, where) in BUDGETS.items():
+            have = len(done.get((dataset, LABELS[method]), ()))
+            if dataset in where and have < len(SEEDS):
+                out.append(f"{dataset} / {LABELS[method]} ({steps // 1000}k steps): {have} of {len(SEEDS)} seeds finished")
+    return out
+
+
+def _relative(line: str, out: str) -> str:
+    """A left-out run's line without this machine's run-directory path."""
+    return line.replace(str(Path(out).resolve()) + "/", "").replace(str(out).rstrip("/") + "/", "")
+
+
 def _cell(values) -> str:
     values = np.asarray(values, dtype=float)
     return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
@@ -129,6 +150,7 @@ def report(args) -> None:
     unfinished = [r for r in runs if r.final_step < budget.get(r.method, 0)]
     skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {budget[r.method]:,} steps)" for r in unfinished]
     runs = [r for r in runs if r not in unfinished]
+    missing = missing_cells(runs)
     groups = group_runs(runs)
     (results / "runs").mkdir(parents=True, exist_ok=True)
     summary = []
@@ -185,9 +207,17 @@ def report(args) -> None:
             "![learning curves](curves.png)", "", "## Commands", "", "```bash",
             "python benchmarks/table1.py setup", "python benchmarks/table1.py run --jobs 2",
             "python benchmarks/table1.py report", "```", ""]
+    if missing:
+        text += ["## Cells not complete yet", "",
+                 "The grid's cells with fewer finished seeds than planned (`table1.py run` continues them):", "",
+                 *(f"- {line}" for line in missing), ""]
     if skipped:
-        text += ["## Runs left out", "", *(f"- {line}" for line in skipped), ""]
-    (results / "results.md").write_text("\n".join(text))
+        text += ["## Runs left out", "", *(f"- {_relative(line, args.out)}" for line in skipped), ""]
+    if (results / FINDINGS).is_file():
+        text += ["## Findings", "", f"What the numbers say and why: [{FINDINGS}]({FINDINGS}).", ""]
+    tmp = results / "results.md.tmp"
+    tmp.write_text("\n".join(text))
+    tmp.replace(results / "results.md")
     print("\n".join(lines))
 
 
