@@ -1,4 +1,4 @@
-"""Weight-decay study on door-human-v0: does ours still decline, and which lambda should the recipes use?
+"""Studies of ours' hyper-parameters: weight decay on door-human-v0, the AWR temperature on any dataset.
 
 Trains ours (``recipes/door-human-v0-ours.yaml``: IQL on the refined data with the RM state, the IQL
 authors' Gaussian actor, cosine actor schedule, AntMaze expectile and temperature) with
@@ -7,11 +7,19 @@ control arms with IQL's Adroit expectile and temperature (flat AWR weights on th
 with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it
 again and finished runs are skipped (also those whose results an earlier session committed), killed
 ones resumed from their checkpoint. The choice rule is fixed before any run: the arm with the
-highest mean D4RL score over the last five evaluations (steps 42k-50k of 50k), averaged over
+highest mean D4RL score over the last ``--last`` evaluations (5: steps 42k-50k of 50k), averaged over
 seeds; the control arms are candidates too (the recipe takes their expectile and temperature if
 one of them wins).
 
     python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
+
+``--dataset OPTION`` trains ``dataset=OPTION method=ours`` instead of the door-human-v0 recipe, and
+``--temperatures`` adds arms with the recipe's lambda and these inverse temperatures beta, e.g. the
+kitchen study (``benchmarks/results/kitchen-temperature``)::
+
+    python benchmarks/decline_study.py --dataset rmrl-kitchen-partial --temperatures 0 0.5 1 3 10 \
+        --lambdas --adroit-lambdas --tanh-normal-lambdas --steps 20000 --last 3 --set eval.every=4000 \
+        --out runs/kitchen-temperature --results benchmarks/results/kitchen-temperature
 """
 from __future__ import annotations
 
@@ -28,9 +36,9 @@ sys.path.insert(0, str(ROOT))
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.report.runs import read_eval_csv, read_scalars  # noqa: E402
+from rm_torchrl.train.evaluate import SCORE_RANGES  # noqa: E402
 
 RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
-LAST = 5  # evaluations the choice rule averages
 
 
 #: Control arm: IQL's Adroit values, with which the AWR weights of the RM reward are flat (behaviour cloning).
@@ -39,12 +47,20 @@ ADROIT_IQL = ["method.iql.expectile=0.7", "method.iql.temperature=0.5"]
 
 def arms(args) -> list[tuple[str, str, list[str]]]:
     """(label, run name, overrides): every lambda with the recipe's values, then the control arms."""
-    out = [(f"λ={lam}", f"door-human-v0-ours-wd{lam}", _decay(lam)) for lam in args.lambdas]
-    out += [(f"λ={lam}, τ=0.7 β=0.5 (IQL Adroit)", f"door-human-v0-ours-beta0.5-wd{lam}", _decay(lam) + ADROIT_IQL)
+    row = row_name(args)
+    out = [(f"λ={lam}", f"{row}-ours-wd{lam}", _decay(lam)) for lam in args.lambdas]
+    out += [(f"β={float(b)!r}", f"{row}-ours-beta{float(b)!r}", [f"method.iql.temperature={float(b)!r}"])
+            for b in args.temperatures]
+    out += [(f"λ={lam}, τ=0.7 β=0.5 (IQL Adroit)", f"{row}-ours-beta0.5-wd{lam}", _decay(lam) + ADROIT_IQL)
             for lam in args.adroit_lambdas]
-    out += [(f"λ={lam}, τ=0.7 β=0.5, tanh_normal actor", f"door-human-v0-ours-beta0.5-wd{lam}-tanhnormal",
+    out += [(f"λ={lam}, τ=0.7 β=0.5, tanh_normal actor", f"{row}-ours-beta0.5-wd{lam}-tanhnormal",
              _decay(lam) + ADROIT_IQL + ["network.actor=tanh_normal"]) for lam in args.tanh_normal_lambdas]
     return out
+
+
+def row_name(args) -> str:
+    """The dataset's Table 1 row: the generated stand-ins' options are ``rmrl-<row>``."""
+    return args.dataset.removeprefix("rmrl-") if args.dataset else "door-human-v0"
 
 
 def _decay(lam: str) -> list[str]:
@@ -55,7 +71,9 @@ def grid(args) -> list[tuple[str, list[str]]]:
     runs = []
     for seed in args.seeds:  # seed-major over every arm: a partial study covers them all
         for _, name, overrides in arms(args):
-            runs.append((str(RECIPE), [f"name={name}", f"seed={seed}", f"out={args.out}", *overrides,
+            source = [f"dataset={args.dataset}", "method=ours"] if args.dataset else []
+            runs.append((None if args.dataset else str(RECIPE), [*source, f"name={name}", f"seed={seed}",
+                                                                  f"out={args.out}", *overrides,
                                        f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
                                        *args.override]))
     return runs
@@ -107,6 +125,8 @@ def write_results(args, arms: dict) -> None:
     results = Path(args.results)
     results.mkdir(parents=True, exist_ok=True)
     rows, summary = [], []
+    low, high = SCORE_RANGES[args.score]
+    span = high - low
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
     for label, seeds in arms.items():
         steps = next(iter(seeds.values()))[1]["step"]
@@ -116,7 +136,7 @@ def write_results(args, arms: dict) -> None:
         sem = np.stack([e["return_std"] for _, e, _ in seeds.values()]) / np.sqrt(
             np.stack([e["episodes"] for _, e, _ in seeds.values()]))
         mean, std = scores.mean(0), scores.std(0, ddof=1) if len(scores) > 1 else np.zeros(len(steps))
-        line, = axes[0].plot(steps, mean, label=label, linestyle="--" if "β=0.5" in label else "-")
+        line, = axes[0].plot(steps, mean, label=label, linestyle="--" if "τ=0.7" in label else "-")
         axes[0].fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
         for key, ax in (("weight_clamped", axes[1]), ("entropy", axes[2])):
             curves = [s[key] for _, _, s in seeds.values() if key in s]
@@ -124,10 +144,10 @@ def write_results(args, arms: dict) -> None:
                 n = min(len(c) for c in curves)
                 ax.plot(curves[0][:n, 0], np.mean([c[:n, 1] for c in curves], 0), color=line.get_color(),
                         linestyle=line.get_linestyle())
-        last = scores[:, -LAST:].mean(1)
+        last = scores[:, -args.last:].mean(1)
         peak = scores.max(1)
-        rows.append((label, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -LAST:].mean(1),
-                     events[:, -LAST:].mean(1), float(np.median(sem)) * 100 / (2880.5693 + 56.5128)))
+        rows.append((label, len(seeds), scores[:, -1], last, scores.mean(1), peak, success[:, -args.last:].mean(1),
+                     events[:, -args.last:].mean(1), float(np.median(sem)) * 100 / span))
         for seed, (run_dir, evals, scalars) in seeds.items():
             if (run_dir / "eval.csv").is_file():
                 shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
@@ -139,10 +159,11 @@ def write_results(args, arms: dict) -> None:
                                         results / f"scalars-{run_dir.name}" / f"{key}.csv")
             summary.append({"arm": label, "seed": seed, "steps": int(evals["step"][-1]),
                             "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
-                            "last5_score": float(evals["score"][-LAST:].mean()), "mean_score": float(evals["score"].mean()),
+                            f"last{args.last}_score": float(evals["score"][-args.last:].mean()),
+                            "mean_score": float(evals["score"].mean()),
                             "peak_score": float(evals["score"].max()), "peak_step": int(evals["step"][np.argmax(evals["score"])]),
                             "final_return": float(evals["return_mean"][-1]), "reward": str(evals.get("reward", ["env"])[-1])})
-    axes[0].set(xlabel="gradient step", ylabel="D4RL score (mean ± std over seeds)", title="door-human-v0, ours")
+    axes[0].set(xlabel="gradient step", ylabel="D4RL score (mean ± std over seeds)", title=f"{row_name(args)}, ours")
     axes[0].legend()
     axes[1].set(xlabel="gradient step", ylabel="share of advantage weights at the clamp (100)", title="actor weights")
     axes[2].set(xlabel="gradient step", ylabel="-log pi(a|s) on the batch", title="actor negative log-likelihood")
@@ -153,8 +174,9 @@ def write_results(args, arms: dict) -> None:
         return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
     best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
-    lines = ["| arm (λ = λ_Q = λ_π) | seeds | final score | last 5 evaluations | mean over evaluations | peak | "
-             "success (last 5) | events of 4 (last 5) |", "|---|---|---|---|---|---|---|---|"]
+    lines = [f"| arm (λ = λ_Q = λ_π, β: AWR inverse temperature) | seeds | final score | last {args.last} evaluations | "
+             f"mean over evaluations | peak | success (last {args.last}) | events of 4 (last {args.last}) |",
+             "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
         mark = " **(chosen)**" if lam == best else ""
         lines.append(f"| {lam}{mark} | {n} | {cell(final)} | {cell(last)} | {cell(mean)} | {cell(peak)} | "
@@ -176,6 +198,10 @@ def main() -> int:
                    help="control arms with IQL's Adroit expectile and temperature (0.7, 0.5)")
     p.add_argument("--tanh-normal-lambdas", nargs="*", default=["1e-4"],
                    help="control arms with IQL's Adroit values and the tanh-squashed Gaussian actor")
+    p.add_argument("--dataset", default=None, help="a dataset option of recipes/dataset/ (default: the door-human-v0 recipe)")
+    p.add_argument("--temperatures", nargs="*", default=[], help="arms with the recipe's lambda and these betas")
+    p.add_argument("--last", type=int, default=5, help="evaluations the choice rule averages (the last ones)")
+    p.add_argument("--score", default="door", choices=sorted(SCORE_RANGES), help="the score's D4RL range")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=50_000)
     p.add_argument("--jobs", type=int, default=2)
