@@ -193,7 +193,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decline-study"))
-    p.add_argument("--lambdas", nargs="+", default=["0", "1e-4", "1e-3", "1e-2"])
+    p.add_argument("--lambdas", nargs="*", default=["0", "1e-4", "1e-3", "1e-2"])
     p.add_argument("--adroit-lambdas", nargs="*", default=["0", "1e-4"],
                    help="control arms with IQL's Adroit expectile and temperature (0.7, 0.5)")
     p.add_argument("--tanh-normal-lambdas", nargs="*", default=["1e-4"],
