@@ -9,7 +9,8 @@ again and finished runs are skipped (also those whose results an earlier session
 ones resumed from their checkpoint. The choice rule is fixed before any run: the arm with the
 highest mean D4RL score over the last ``--last`` evaluations (5: steps 42k-50k of 50k), averaged over
 seeds; the control arms are candidates too (the recipe takes their expectile and temperature if
-one of them wins).
+one of them wins). Arms equal to the printed precision go to the later one in the table (for
+``--temperatures`` in ascending order, the larger beta: it keeps more of IQL's advantage weighting).
 
     python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
 
@@ -173,7 +174,8 @@ def write_results(args, arms: dict) -> None:
     def cell(values):
         return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
-    best = max(rows, key=lambda r: r[3].mean())[0] if rows else None
+    # ties as printed go to the later arm: with --temperatures ascending, the larger beta (more IQL, less BC)
+    best = max(enumerate(rows), key=lambda ir: (round(float(ir[1][3].mean()), 1), ir[0]))[1][0] if rows else None
     lines = [f"| arm (λ = λ_Q = λ_π, β: AWR inverse temperature) | seeds | final score | last {args.last} evaluations | "
              f"mean over evaluations | peak | success (last {args.last}) | events of 4 (last {args.last}) |",
              "|---|---|---|---|---|---|---|---|"]

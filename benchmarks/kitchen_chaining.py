@@ -172,7 +172,7 @@ def main(argv=None) -> int:
         parser.error(f"{args.run_dir} is not a FrankaKitchen-v1 run with an event spec")
     horizon = args.horizon or loaded.recipe.eval.max_steps
     probe = KitchenProbe(loaded)
-    result = {"run": str(args.run_dir), "step": loaded.step, "horizon": horizon,
+    result = {"run": args.run_dir.name, "step": loaded.step, "horizon": horizon,
               "own": own_episodes(probe, args.episodes, horizon, loaded.recipe.seed)}
     starts = skill_starts(loaded.recipe, args.starts, args.seed)
     result["order"] = starts["order"]
