@@ -62,6 +62,21 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
     assert again.trainer.steps == 7 and again.to_dict()["method"] == named["method"]
 
 
+KITCHEN = [d for d in DATASETS if "kitchen" in d]
+
+
+@pytest.mark.parametrize("data", KITCHEN)
+def test_kitchen_datasets_give_ours_the_studied_temperature_and_leave_the_baselines_alone(data):
+    """recipes/tuned/ours-<dataset>.yaml: the kitchen temperature study's choice, for ours only."""
+    chosen = yaml.safe_load((RECIPES / "tuned" / "ours-kitchen.yaml").read_text())["method"]["iql"]["temperature"]
+    assert load_recipe(None, [f"dataset={data}", "method=ours"]).method.iql.temperature == chosen
+    assert load_recipe(None, [f"dataset={data}", "method=iql"]).method.iql.temperature == 0.5  # IQL's own value
+    assert load_recipe(None, [f"dataset={data}", "method=ours", "method.iql.temperature=7"]).method.iql.temperature == 7
+    assert load_recipe(None, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 10.0
+    tuned = {p.stem for p in (RECIPES / "tuned").glob("ours-*.yaml")} - {"ours-kitchen"}
+    assert tuned == {f"ours-{d}" for d in KITCHEN}  # every kitchen option has one, nothing else does
+
+
 @pytest.mark.parametrize("override,message", [
     ("dataset=nope", "Could not find 'dataset/nope'"),
     ("method=sac", "Could not find 'method/sac'; available options in 'method': bc, bcq, cql, iql, ours$"),
