@@ -37,8 +37,10 @@ from iql_diagnostics import diagnose  # noqa: E402
 from rm_torchrl import load_policy  # noqa: E402
 from rm_torchrl.data.sources import load_dataset  # noqa: E402
 from rm_torchrl.envs import RMEnvTransform  # noqa: E402
+from rm_torchrl.events import load_event_spec  # noqa: E402
 from rm_torchrl.envs.kitchen_v0 import KITCHEN_TASK_GOALS, KITCHEN_TASK_INDICES  # noqa: E402
 from rm_torchrl.refine import refine  # noqa: E402
+from rm_torchrl.segments import run_starts  # noqa: E402
 from rm_torchrl.train.data import ENCODING_KEY  # noqa: E402
 
 #: FrankaKitchen-v1's flat observation: robot qpos (9), robot qvel (9), object qpos (21), object qvel (20)
@@ -122,18 +124,17 @@ def own_episodes(probe: KitchenProbe, episodes: int, horizon: int, seed: int) ->
 def skill_starts(recipe, n: int, seed: int) -> dict:
     """Per group of the refined order: up to ``n`` first transitions of its kept sub-trajectories."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
-    from rm_torchrl.events import load_event_spec
-
     data, report = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints)
-    first = torch.ones(len(data), dtype=torch.bool)
-    first[1:] = data["subtrajectory"][1:] != data["subtrajectory"][:-1]
+    piece = data["subtrajectory"]
+    first = run_starts(piece)
+    length = torch.bincount(piece)  # steps of every kept sub-trajectory, indexed by its id
     obs = data.get("observation")
     obs = obs.get("observation") if not isinstance(obs, torch.Tensor) else obs
     rng = np.random.default_rng(seed)
     groups = {}
     for depth in range(len(report.to_dict()["order"])):
         rows = torch.nonzero(first & ((data["rm_state"] > 0).sum(-1) == depth)).flatten().numpy()
-        lengths = [int((data["subtrajectory"] == data["subtrajectory"][r]).sum()) for r in rows]
+        lengths = length[piece[rows]].numpy()
         pick = rng.choice(len(rows), size=min(n, len(rows)), replace=False)
         groups[depth] = {"pieces": len(rows), "median_length": float(np.median(lengths)),
                          "starts": [(obs[rows[i]].double().numpy(), data["rm_state"][rows[i]]) for i in pick]}

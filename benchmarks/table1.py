@@ -129,11 +129,6 @@ def missing_cells(runs) -> list[str]:
     return out
 
 
-def _relative(line: str, out: str) -> str:
-    """A left-out run's line without this machine's run-directory path."""
-    return line.replace(str(Path(out).resolve()) + "/", "").replace(str(out).rstrip("/") + "/", "")
-
-
 def _cell(values) -> str:
     values = np.asarray(values, dtype=float)
     return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
@@ -212,7 +207,7 @@ def report(args) -> None:
                  "The grid's cells with fewer finished seeds than planned (`table1.py run` continues them):", "",
                  *(f"- {line}" for line in missing), ""]
     if skipped:
-        text += ["## Runs left out", "", *(f"- {_relative(line, args.out)}" for line in skipped), ""]
+        text += ["## Runs left out", "", *(f"- {line}" for line in skipped), ""]
     if (results / FINDINGS).is_file():
         text += ["## Findings", "", f"What the numbers say and why: [{FINDINGS}]({FINDINGS}).", ""]
     tmp = results / "results.md.tmp"

@@ -332,9 +332,11 @@ def test_runs_without_evaluations_or_failed_are_left_out_and_named(tmp_path, cap
     (failed / "failed.json").write_text(json.dumps({"step": 7, "message": "step 7: loss_qvalue is NaN or inf"}))
     assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
     err = capsys.readouterr().err
-    assert f"run {empty} has no evaluations" in err and f"{failed}: failed: step 7: loss_qvalue" in err
+    rel_empty, rel_failed = empty.relative_to(tmp_path), failed.relative_to(tmp_path)
+    assert f"run {rel_empty} has no evaluations" in err and f"{rel_failed}: failed: step 7: loss_qvalue" in err
     results = (tmp_path / "out" / "results.md").read_text()
-    assert "## Runs left out" in results and str(failed) in results
+    assert "## Runs left out" in results and f"- {rel_failed}: failed" in results
+    assert str(tmp_path) not in results  # a report names runs below its root, not this machine's paths
     assert "99.0" not in results  # a failed run is never a score
 
 

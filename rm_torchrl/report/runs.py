@@ -330,16 +330,29 @@ def read_run(run_dir: str | os.PathLike, dataset_from: str = "name") -> Run:
                dataset=dataset_label(recipe, dataset_from), method=method_label(recipe), metric=metric)
 
 
+def _below_root(run_dir: Path, roots: list[Path]) -> str:
+    """``run_dir`` relative to the first root that holds it (its own name when it is a root)."""
+    resolved = Path(run_dir).resolve()
+    for root in roots:
+        if resolved != root and resolved.is_relative_to(root):
+            return str(resolved.relative_to(root))
+    return resolved.name
+
+
 def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
               skipped: list[str] | None = None) -> list[Run]:
     """Every scoreable run at or below ``paths``.
 
     Runs marked failed (``failed.json``: a non-finite loss stopped them) and runs without any
-    evaluation yet are left out, each with a line in ``skipped`` when given; if no run is left,
-    the error names them all.
+    evaluation yet are left out, each with a line in ``skipped`` when given (naming the run by its
+    path below the root it was found in: the lines go into reports read on other machines); if no
+    run is left, the error names them all by their full paths.
     """
-    runs, left_out = [], []
+    paths = list(paths)
+    runs, left_out, named = [], [], []
+    roots = [Path(p).resolve() for p in paths]
     for run_dir in find_run_dirs(paths):
+        shown = _below_root(run_dir, roots)
         failed = run_dir / FAILED_FILE
         if failed.is_file():
             try:
@@ -347,6 +360,7 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
             except (OSError, ValueError, AttributeError):
                 why = ""
             left_out.append(f"{run_dir}: failed{': ' + why if why else ''}")
+            named.append(f"{shown}: failed{': ' + why if why else ''}")
             continue
         try:
             runs.append(read_run(run_dir, dataset_from))
@@ -354,11 +368,12 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
             if "has no evaluations" not in str(err):
                 raise
             left_out.append(str(err))
+            named.append(str(err).replace(str(run_dir), shown))
     if not runs:
         raise RMError(left_out[0] if len(left_out) == 1 else
                       f"no run has evaluations to report ({len(left_out)} runs):\n  " + "\n  ".join(left_out))
     if skipped is not None:
-        skipped.extend(left_out)
+        skipped.extend(named)
     return runs
 
 
