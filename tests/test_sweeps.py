@@ -62,19 +62,25 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
     assert again.trainer.steps == 7 and again.to_dict()["method"] == named["method"]
 
 
-KITCHEN = [d for d in DATASETS if "kitchen" in d]
+#: each dataset option with a studied temperature for ours -> the tuned file holding the study's choice
+STUDIED = {d: "ours-kitchen" for d in DATASETS if "kitchen" in d} | {
+    d: "ours-door-cloned" for d in ("door-cloned", "rmrl-door-cloned")}
 
 
-@pytest.mark.parametrize("data", KITCHEN)
-def test_kitchen_datasets_give_ours_the_studied_temperature_and_leave_the_baselines_alone(data):
-    """recipes/tuned/ours-<dataset>.yaml: the kitchen temperature study's choice, for ours only."""
-    chosen = yaml.safe_load((RECIPES / "tuned" / "ours-kitchen.yaml").read_text())["method"]["iql"]["temperature"]
+@pytest.mark.parametrize("data", sorted(STUDIED))
+def test_studied_datasets_give_ours_their_temperature_and_leave_the_baselines_alone(data):
+    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice, for ours only."""
+    study = yaml.safe_load((RECIPES / "tuned" / f"{STUDIED[data]}.yaml").read_text())
+    chosen = study["method"]["iql"]["temperature"]
     assert load_recipe(None, [f"dataset={data}", "method=ours"]).method.iql.temperature == chosen
     assert load_recipe(None, [f"dataset={data}", "method=iql"]).method.iql.temperature == 0.5  # IQL's own value
     assert load_recipe(None, [f"dataset={data}", "method=ours", "method.iql.temperature=7"]).method.iql.temperature == 7
     assert load_recipe(None, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 10.0
-    tuned = {p.stem for p in (RECIPES / "tuned").glob("ours-*.yaml")} - {"ours-kitchen"}
-    assert tuned == {f"ours-{d}" for d in KITCHEN}  # every kitchen option has one, nothing else does
+
+
+def test_only_the_studied_datasets_have_tuned_files():
+    tuned = {p.stem for p in (RECIPES / "tuned").glob("*.yaml")}
+    assert tuned == {f"ours-{d}" for d in STUDIED} | set(STUDIED.values())  # nothing else is tuned
 
 
 @pytest.mark.parametrize("override,message", [
