@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
+from rm_torchrl.events.spec import load_event_spec  # noqa: E402
 from rm_torchrl.report.runs import read_eval_csv, read_scalars  # noqa: E402
 from rm_torchrl.train.evaluate import SCORE_RANGES  # noqa: E402
 
@@ -177,7 +178,7 @@ def write_results(args, arms: dict) -> None:
     # ties as printed go to the later arm: with --temperatures ascending, the larger beta (more IQL, less BC)
     best = max(enumerate(rows), key=lambda ir: (round(float(ir[1][3].mean()), 1), ir[0]))[1][0] if rows else None
     lines = [f"| arm (λ = λ_Q = λ_π, β: AWR inverse temperature) | seeds | final score | last {args.last} evaluations | "
-             f"mean over evaluations | peak | success (last {args.last}) | events of 4 (last {args.last}) |",
+             f"mean over evaluations | peak | success (last {args.last}) | events of {load_event_spec(args.score).n} (last {args.last}) |",
              "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
         mark = " **(chosen)**" if lam == best else ""

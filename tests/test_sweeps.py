@@ -64,7 +64,8 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
 
 #: each dataset option with a studied temperature for ours -> the tuned file holding the study's choice
 STUDIED = {d: "ours-kitchen" for d in DATASETS if "kitchen" in d} | {
-    d: "ours-door-cloned" for d in ("door-cloned", "rmrl-door-cloned")}
+    d: "ours-door-cloned" for d in ("door-cloned", "rmrl-door-cloned")} | {
+    d: "ours-relocate" for d in DATASETS if "relocate" in d}
 
 
 @pytest.mark.parametrize("data", sorted(STUDIED))
