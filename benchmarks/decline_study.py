@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.events.spec import load_event_spec  # noqa: E402
 from rm_torchrl.report.runs import read_eval_csv, read_scalars  # noqa: E402
+from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 from rm_torchrl.train.evaluate import SCORE_RANGES  # noqa: E402
 
 RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
@@ -69,15 +70,18 @@ def _decay(lam: str) -> list[str]:
     return [f"optim.weight_decay_q={float(lam)!r}", f"optim.weight_decay_pi={float(lam)!r}"]
 
 
+def source(args) -> tuple[str | None, list[str]]:
+    """The study's base recipe: ``dataset=OPTION method=ours``, or the door-human-v0 recipe file."""
+    return (None, [f"dataset={args.dataset}", "method=ours"]) if args.dataset else (str(RECIPE), [])
+
+
 def grid(args) -> list[tuple[str, list[str]]]:
     runs = []
+    path, base = source(args)
     for seed in args.seeds:  # seed-major over every arm: a partial study covers them all
         for _, name, overrides in arms(args):
-            source = [f"dataset={args.dataset}", "method=ours"] if args.dataset else []
-            runs.append((None if args.dataset else str(RECIPE), [*source, f"name={name}", f"seed={seed}",
-                                                                  f"out={args.out}", *overrides,
-                                       f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000",
-                                       *args.override]))
+            runs.append((path, [*base, f"name={name}", f"seed={seed}", f"out={args.out}", *overrides,
+                                f"trainer.steps={args.steps}", "trainer.checkpoint_every=5000", *args.override]))
     return runs
 
 
@@ -177,8 +181,9 @@ def write_results(args, arms: dict) -> None:
 
     # ties as printed go to the later arm: with --temperatures ascending, the larger beta (more IQL, less BC)
     best = max(enumerate(rows), key=lambda ir: (round(float(ir[1][3].mean()), 1), ir[0]))[1][0] if rows else None
+    n_events = load_event_spec(load_recipe(*source(args)).data.events).n
     lines = [f"| arm (λ = λ_Q = λ_π, β: AWR inverse temperature) | seeds | final score | last {args.last} evaluations | "
-             f"mean over evaluations | peak | success (last {args.last}) | events of {load_event_spec(args.score).n} (last {args.last}) |",
+             f"mean over evaluations | peak | success (last {args.last}) | events of {n_events} (last {args.last}) |",
              "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
         mark = " **(chosen)**" if lam == best else ""

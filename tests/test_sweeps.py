@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -69,14 +70,26 @@ STUDIED = {d: "ours-kitchen" for d in DATASETS if "kitchen" in d} | {
 
 
 @pytest.mark.parametrize("data", sorted(STUDIED))
-def test_studied_datasets_give_ours_their_temperature_and_leave_the_baselines_alone(data):
-    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice, for ours only."""
+def test_studied_datasets_give_ours_their_temperature(data):
+    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice; the command line still wins."""
     study = yaml.safe_load((RECIPES / "tuned" / f"{STUDIED[data]}.yaml").read_text())
     chosen = study["method"]["iql"]["temperature"]
     assert load_recipe(None, [f"dataset={data}", "method=ours"]).method.iql.temperature == chosen
-    assert load_recipe(None, [f"dataset={data}", "method=iql"]).method.iql.temperature == 0.5  # IQL's own value
     assert load_recipe(None, [f"dataset={data}", "method=ours", "method.iql.temperature=7"]).method.iql.temperature == 7
     assert load_recipe(None, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 10.0
+
+
+def test_a_tuned_file_reaches_its_own_method_only(tmp_path):
+    """With a value no method has (the studies' 0.5 is also IQL's own), a leak to the baselines shows."""
+    recipes = tmp_path / "recipes"
+    shutil.copytree(RECIPES, recipes)
+    (recipes / "tuned" / "ours-door-human-v0.yaml").write_text(
+        "# @package _global_\nmethod:\n  iql:\n    temperature: 3.25\n")
+    train = recipes / "train.yaml"
+    assert load_recipe(train, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 3.25
+    for baseline in set(METHODS) - {"ours"}:
+        assert (load_recipe(train, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"]
+                == load_recipe(None, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"])
 
 
 def test_only_the_studied_datasets_have_tuned_files():
