@@ -134,6 +134,10 @@ def _cell(values) -> str:
     return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
 
+def _hours(rows) -> float:
+    return sum(s["machine_seconds"] or 0 for s in rows) / 3600
+
+
 def machine_time(summary) -> list[str]:
     """A dataset x method table of core-hours, so the cost of each part of the grid is on record."""
     methods = [m for m in LABELS.values() if any(s["method"] == m for s in summary)]
@@ -142,12 +146,9 @@ def machine_time(summary) -> list[str]:
         rows = [s for s in summary if s["dataset"] == dataset]
         if not rows:
             continue
-        cells = []
-        for m in methods:
-            times = [s["machine_seconds"] for s in rows if s["method"] == m and s["machine_seconds"] is not None]
-            cells.append(f"{sum(times) / 3600:.1f} ({len(times)})" if times else "")
-        total = sum(s["machine_seconds"] or 0 for s in rows) / 3600
-        lines.append(f"| {dataset} | " + " | ".join(cells) + f" | {total:.1f} |")
+        timed = [[s for s in rows if s["method"] == m and s["machine_seconds"] is not None] for m in methods]
+        cells = [f"{_hours(t):.1f} ({len(t)})" if t else "" for t in timed]
+        lines.append(f"| {dataset} | " + " | ".join(cells) + f" | {_hours(rows):.1f} |")
     return lines + ["", "In brackets: runs with a recorded time."]
 
 
@@ -210,15 +211,14 @@ def report(args) -> None:
             t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
                       + " / ".join(f"{v:,}" for v in PAPER_T2[dataset]) + " |")
     plot_learning_curves(groups, results / "curves.png")
-    hours = sum(s["machine_seconds"] or 0 for s in summary) / 3600
-    time_lines = machine_time(summary)
+    hours = _hours(summary)
     text = ["# Table 1 on this machine", "",
             f"{len(runs)} runs; evaluation every 2000 steps over 10 episodes; score = D4RL-normalised return "
             f"({', '.join(sorted({r.reward for r in runs}))} rewards); mean ± sample std over seeds. "
             f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h.", "",
             *lines, "", "## Dataset sizes after each refinement stage (Table 2)", "", *t2, "",
             "![learning curves](curves.png)", "", "## Machine time", "",
-            "Hours of one core per cell (training and evaluation), summed over its runs:", "", *time_lines, "",
+            "Hours of one core per cell (training and evaluation), summed over its runs:", "", *machine_time(summary), "",
             "## Commands", "", "```bash",
             "python benchmarks/table1.py setup", "python benchmarks/table1.py run --jobs 2",
             "python benchmarks/table1.py report", "```", ""]
