@@ -1,6 +1,7 @@
 """The paper's Table 1 on this machine: every dataset x method x seed, resumable, with its report.
 
-    python benchmarks/table1.py setup             # generate the five stand-in datasets (skips those present)
+    python benchmarks/table1.py setup             # generate the five stand-in datasets (skips those present;
+                                                  # --datasets: only these, relocate-cloned brings relocate-human)
     python benchmarks/table1.py run --jobs 2      # the grid; run it again to skip finished runs, resume killed ones
                                                   # (runs committed under the results in earlier sessions are skipped)
     python benchmarks/table1.py report            # benchmarks/results/table1/
@@ -104,8 +105,13 @@ def setup(args) -> None:
     import minari
 
     present = set(minari.list_local_datasets())
+    wanted = set(args.datasets or DATASETS)
+    if "relocate-cloned" in wanted:
+        wanted.add("relocate-human")  # the cloned generator's demonstrations
     for name, _, _, size in GENERATED:
         dataset_id = f"rmrl/{name}-v0"
+        if name not in wanted:
+            continue
         if dataset_id in present:
             print(f"{dataset_id}: present", file=sys.stderr)
             continue
