@@ -1,0 +1,40 @@
+"""The kitchen-budget probe's table: seed 0 of ours, IQL and BC on kitchen-partial at 100k steps
+against the same seed's 50k Table 1 runs, from the committed eval CSVs.
+
+    python benchmarks/kitchen_budget.py > /tmp/table.md     # pasted into benchmarks/results/kitchen-budget/README.md
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from rm_torchrl.report.runs import read_eval_csv  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+TASK = 25.0  # FrankaKitchen score points per completed task
+
+
+def row(label: str, budget: str, csv: Path) -> str:
+    e = read_eval_csv(csv)
+    steps, tasks = e["step"].astype(int), e["score"] / TASK
+    best = int(np.argmax(tasks))
+    return (f"| {label} | {budget}, {steps[-1] // 1000}k reached | {tasks[-1]:.1f} | {tasks[-5:].mean():.1f} | "
+            f"{tasks.mean():.2f} | {tasks[best]:.1f} ({steps[best] // 1000}k) | {int((tasks >= 2.5).sum())} of {len(tasks)} |")
+
+
+def main() -> int:
+    print("| method | budget | final (tasks of 4) | last 5 evaluations | mean over evaluations | best (step) | "
+          "evaluations with ≥ 2.5 tasks |\n|---|---|---|---|---|---|---|")
+    for method, label in (("ours", "Ours"), ("iql", "IQL"), ("bc", "BC")):
+        print(row(label, "100k", RESULTS / "kitchen-budget" / f"eval-kitchen-partial-{method}-100k-seed0.csv"))
+        print(row(label, "50k (Table 1)", RESULTS / "table1" / "runs" / f"kitchen-partial-{method}-seed0" / "eval.csv"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
