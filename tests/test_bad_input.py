@@ -1,6 +1,8 @@
 """Inputs a user can get wrong must raise RMError with a message that says what is wrong."""
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -351,3 +353,78 @@ def test_index_string_is_a_slice():
     assert spec.events[0].slice == (1, 3) and spec.events[0].index is None
     with pytest.raises(RMError, match="'index' must be"):
         EventSpec.from_dict({"events": [{"name": "a", "index": "1-3", "op": "<", "value": 1}]})
+
+
+# --------------------------------------------------------------------------------------------
+# Events that never fire, and names that separators would make ambiguous
+# --------------------------------------------------------------------------------------------
+
+def test_events_that_hold_from_the_first_step_are_named_not_reported_as_never_happening():
+    held = frozenset({1, 2})
+    td, spec = ref.episodes_to_td([[held, held, held], [held, held]], 2)
+    with pytest.raises(RMError, match=r"no event ever happens in this dataset: 'ev1', 'ev2' already hold at the "
+                                      r"first step of every episode, and an event happens only when it starts to hold; "
+                                      "check the event spec thresholds"):
+        refine(td, spec)
+    # ev1 holds from the start of both episodes; ev2 and ev3 never start to hold
+    td, spec = ref.episodes_to_td([[{1}, {1}, {1}], [{1, 3}, {1, 3}]], 3)
+    with pytest.raises(RMError, match=r"'ev1' already holds .* the other events never start to hold"):
+        refine(td, spec)
+    # without the spec, SplitGroup alone cannot tell why
+    with pytest.raises(RMError, match="no event ever happens in this dataset: every transition keeps its RM state"):
+        SplitGroup()(LabelRM(spec)(td))
+    # ev1 holds at the start of one episode only: nothing fires, but not for that reason alone
+    td, spec = ref.episodes_to_td([[{1}, {1}], [frozenset(), frozenset()]], 1)
+    with pytest.raises(RMError, match="no event ever happens in this dataset: every transition keeps its RM state"):
+        refine(td, spec)
+
+
+def test_rmrl_refine_names_the_events_holding_at_every_first_step(tmp_path, capsys):
+    """A real D4RL file and YAML spec: obs = [1000 * episode + t, t, episode]; t >= 0 and episode >= 0 always hold."""
+    from rm_torchrl.cli.main import main
+    from test_d4rl_source import make_file
+
+    path, _ = make_file(tmp_path, [6, 7, 5])
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("events:\n  - {name: started, index: 1, op: '>=', value: 0}\n"
+                    "  - {name: known, index: 2, op: '>=', value: 0}\n")
+    assert main(["refine", "--dataset", str(path), "--events", str(spec), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "rmrl refine: error: no event ever happens in this dataset: 'started', 'known' already hold at the first " \
+           "step of every episode" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name,separator", [("reach->open", "->"), ("a<b", "<"), ("kettle,light", ","),
+                                            ("e0->e1", "->")])
+def test_event_names_holding_a_separator_are_refused(name, separator):
+    with pytest.raises(RMError, match=rf"event name '{re.escape(name)}' contains '{separator}', which separates event "
+                                      r"names in .*; rename the event"):
+        EventSpec.from_dict(spec_with(name=name))
+    with pytest.raises(RMError, match=f"contains '{separator}'"):
+        EventSpec.from_callables([lambda o: o["observation"][:, 0] > 0], [name])
+
+
+@pytest.mark.parametrize("name", [" door", "door ", "\tdoor"])
+def test_event_names_with_surrounding_spaces_are_refused(name):
+    with pytest.raises(RMError, match="starts or ends with a space, which order constraints"):
+        EventSpec.from_dict(spec_with(name=name))
+
+
+def test_a_yaml_event_name_with_an_arrow_is_a_one_line_cli_error(tmp_path, capsys):
+    from rm_torchrl.cli.main import main
+    from test_d4rl_source import make_file
+
+    path, _ = make_file(tmp_path, [6, 7])
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("events:\n  - {name: a, index: 1, op: '>', value: 2}\n  - {name: a->b, index: 1, op: '>', value: 3}\n")
+    assert main(["refine", "--dataset", str(path), "--events", str(spec), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"rmrl refine: error: event spec {spec}: event name 'a->b' contains '->'" in err and "Traceback" not in err
+
+
+def test_names_with_spaces_and_lambdas_still_work():
+    spec = EventSpec.from_dict(spec_with(name="light switch"))
+    assert spec.names == ["light switch"]
+    spec = EventSpec.from_callables([lambda o: o["observation"][:, 0] > 0, lambda o: o["observation"][:, 1] > 0])
+    assert spec.names == ["e1", "e2"]  # not '<lambda>' (a separator, and twice)

@@ -7,6 +7,7 @@ any shift between observation, action and reward shows up.
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import h5py
@@ -470,3 +471,123 @@ def test_a_damaged_gzip_chunk_is_a_one_line_error(tmp_path):
     path.write_bytes(bytes(raw))
     with pytest.raises(RMError, match=r"cannot read 'observations', the file is damaged \(.*filter returned failure"):
         load_d4rl_hdf5(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Values float32 cannot hold, and episodes no flag ends
+# --------------------------------------------------------------------------------------------
+
+def _with(key, change, dtype=np.float64):
+    """Observations, actions, rewards of episodes [5, 6] as ``dtype``, ``change`` applied to ``key``."""
+    obs, actions, rewards, last = steps_of([5, 6])
+    arrays = {"observations": obs.astype(dtype), "actions": actions.astype(dtype), "rewards": rewards.astype(dtype)}
+    change(arrays[key])
+    return arrays, last
+
+
+@pytest.mark.parametrize("key,row,value,expected", [
+    ("observations", (7, 1), 1e300, r"observations contain .* first at rows \[7\] \(column\(s\) \[1\]\)"),
+    ("actions", (3, 0), -1e39, r"actions contain .* first at rows \[3\] \(column\(s\) \[0\]\)"),
+    ("rewards", 9, 3.5e38, r"rewards contain .* first at rows \[9\]$"),
+])
+def test_float64_values_beyond_float32_are_refused_naming_the_column(tmp_path, key, row, value, expected):
+    """Cast to float32 they would be inf after the NaN/inf check (1e300 -> inf)."""
+    def change(values):
+        values[row] = value
+    arrays, last = _with(key, change)
+    path = write_h5(tmp_path / "d.hdf5", *arrays.values(), terminals=flags(11, last))
+    with pytest.raises(RMError, match=r"values beyond float32's range \(\|x\| > 3.4e\+38\) in 1 row\(s\)") as err:
+        load_d4rl_hdf5(path)
+    assert re.search(expected, str(err.value)) and str(err.value).startswith(f"{path}: ")
+
+
+def test_float64_values_within_float32_load_and_nan_names_its_columns(tmp_path):
+    def change(values):
+        values[2, 0], values[4, 2] = 3.4e38, -1e-300
+    arrays, last = _with("observations", change)
+    path = write_h5(tmp_path / "d.hdf5", *arrays.values(), terminals=flags(11, last))
+    assert torch.isfinite(load_d4rl_hdf5(path)["observation"]).all()
+
+    def nan(values):
+        values[[3, 8], 2] = np.nan
+        values[8, 0] = np.inf
+    arrays, last = _with("observations", nan)
+    path = write_h5(tmp_path / "d.hdf5", *arrays.values(), terminals=flags(11, last))
+    with pytest.raises(RMError, match=r"observations contain NaN or inf in 2 row\(s\), first at rows \[3, 8\] "
+                                      r"\(column\(s\) \[0, 2\]\)"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("key", ["observations", "actions", "rewards"])
+def test_complex_values_are_refused_naming_the_entry_and_dtype(tmp_path, key):
+    arrays, last = _with(key, lambda values: None)
+    arrays[key] = arrays[key] + 0.5j
+    path = write_h5(tmp_path / "d.hdf5", *arrays.values(), terminals=flags(11, last))
+    with pytest.raises(RMError, match=rf"{key} hold complex numbers \(complex128\); only real values can be used"):
+        load_d4rl_hdf5(path)
+
+
+def test_big_endian_float64_arrays_load_like_native_ones(tmp_path):
+    arrays, last = _with("observations", lambda values: None)
+    native = write_h5(tmp_path / "native.hdf5", *arrays.values(), terminals=flags(11, last))
+    swapped = write_h5(tmp_path / "swapped.hdf5", *(v.astype(v.dtype.newbyteorder(">")) for v in arrays.values()),
+                       terminals=flags(11, last))
+    with h5py.File(swapped) as f:
+        assert f["observations"].dtype.byteorder == ">"
+    assert (load_d4rl_hdf5(swapped) == load_d4rl_hdf5(native)).all()
+
+
+def test_values_beyond_float32_are_refused_by_refine_import_and_train(tmp_path, capsys, cache):
+    from rm_torchrl.cli.main import main
+    from test_train import make_recipe, write_d4rl
+
+    bad = write_d4rl(tmp_path / "bad.hdf5", transitions=400)
+    with h5py.File(bad, "r+") as f:
+        for key in ("observations", "rewards"):
+            values = f[key][()].astype(np.float64)
+            values[5, ...] = 0.0
+            values[(5, 7) if values.ndim == 2 else 5] = 1e300
+            del f[key]
+            f[key] = values
+    assert main(["train", str(make_recipe(tmp_path, bad)), "--no-progress"]) == 2
+    assert main(["refine", "--dataset", str(bad), "--events", "door", "--out", str(tmp_path / "refined")]) == 2
+    assert main(["import-d4rl", str(bad), "--out-name", "test/bad-v0"]) == 2
+    err = capsys.readouterr().err
+    message = ("observations contain values beyond float32's range (|x| > 3.4e+38) in 1 row(s), first at rows [5] "
+               "(column(s) [7])")
+    assert err.count(message) == 3, err
+    assert "Traceback" not in err
+    assert not (tmp_path / "refined").exists() and not any((tmp_path / "runs").rglob("*.pt"))
+    assert not any(cache.rglob("bad-v0*"))
+
+
+def test_auto_refuses_jumps_that_no_flag_ends(tmp_path):
+    """All flags False, yet the observation jumps as between episodes: no silent single long episode."""
+    path, (obs, _, _, last) = make_file(tmp_path, [8, 9, 7], ends="none")
+    with pytest.raises(RMError, match=r"no terminal or timeout flag ends an episode, yet the observation jumps as at "
+                                      r"an episode boundary after 2 row\(s\), first \[7, 16\]; .* --episode-ends both"):
+        load_d4rl_hdf5(path)
+    for mode in ("both", "terminals", "timeouts"):  # an explicit mode takes the flags as they are
+        assert (load_d4rl_hdf5(path, episode_ends=mode)["episode"] == 0).all()
+    # a flag on the last row alone ends no episode either
+    path, _ = make_file(tmp_path, [8, 9, 7], ends="none", name="last.hdf5", timeouts=flags(len(obs), [len(obs) - 1]))
+    with pytest.raises(RMError, match="no terminal or timeout flag ends an episode"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} not available")
+def test_door_human_v0_with_its_flags_zeroed_is_refused_by_auto(tmp_path, capsys, cache):
+    from rm_torchrl.cli.main import main
+
+    path = tmp_path / "door-human-v0.hdf5"
+    path.write_bytes(DOOR.read_bytes())
+    with h5py.File(path, "r+") as f:
+        for key in ("terminals", "timeouts"):
+            f[key][...] = False
+    assert main(["refine", "--dataset", str(path), "--events", "door", "--out", str(tmp_path / "refined")]) == 2
+    assert main(["import-d4rl", str(path), "--out-name", "test/zeroed-v0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("no terminal or timeout flag ends an episode, yet the observation jumps as at an episode "
+                     "boundary after 54 row(s), first [248, 299, 576, 599, 825]") == 2, err
+    assert "Traceback" not in err and not (tmp_path / "refined").exists() and not any(cache.rglob("zeroed-v0*"))
+    assert load_d4rl_hdf5(path, episode_ends="both").batch_size[0] == 6728  # asked for: one episode

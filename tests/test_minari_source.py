@@ -273,8 +273,52 @@ def test_nan_in_a_minari_dataset_is_refused(minari_cache, key):
         values[1] = np.nan
         column[...] = values
     name = {"rewards": "next/reward", "actions": "action"}[key]
-    with pytest.raises(RMError, match=rf"tiny/nan-v0: {name} holds NaN or inf in 1 transition\(s\), first at \[1\]"):
+    with pytest.raises(RMError, match=rf"tiny/nan-v0: {name} contain NaN or inf in 1 transition\(s\), first at "
+                                      r"transitions \[1\]"):
         load_dataset("tiny/nan-v0")
+
+
+def _retype_observations(minari_cache, change):
+    """Rewrites every episode's observations in the cache's one dataset as ``change(float64 values, episode)``."""
+    import h5py
+
+    (path,) = minari_cache.rglob("main_data.hdf5")
+    with h5py.File(path, "r+") as f:
+        for episode, group in enumerate(f[f"episode_{i}"] for i in range(len(f))):
+            values = change(group["observations"][()].astype(np.float64), episode)
+            del group["observations"]
+            group["observations"] = values
+
+
+def test_float64_values_beyond_float32_in_a_minari_dataset_are_refused(minari_cache):
+    """TorchRL reads float64 columns as float64; the cast to float32 would make 1e300 inf after the check."""
+    from rm_torchrl.data import load_dataset
+
+    def big(values, episode):
+        if episode == 1:
+            values[2, 1] = -1e300
+        return values
+
+    _write_dataset("tiny/big-v0")
+    _retype_observations(minari_cache, big)
+    # observation 2 of episode 1 (which starts at transition 5) is the next observation of transition 6
+    with pytest.raises(RMError, match=r"tiny/big-v0: next/observation contain values beyond float32's range "
+                                      r"\(\|x\| > 3.4e\+38\) in 1 transition\(s\), first at transitions \[6\] "
+                                      r"\(column\(s\) \[1\]\)"):
+        load_dataset("minari:tiny/big-v0")
+    _retype_observations(minari_cache, lambda values, episode: np.clip(values, -1e38, 1e38))
+    data = load_dataset("minari:tiny/big-v0")
+    assert data["observation"].dtype == torch.float32 and torch.isfinite(data["observation"]).all()
+
+
+def test_complex_observations_in_a_minari_dataset_are_refused(minari_cache):
+    from rm_torchrl.data import load_dataset
+
+    _write_dataset("tiny/complex-v0")
+    _retype_observations(minari_cache, lambda values, episode: values + 1j)
+    with pytest.raises(RMError, match=r"tiny/complex-v0: next/observation hold complex numbers \(complex128\); "
+                                      "only real values can be used"):
+        load_dataset("tiny/complex-v0")
 
 
 def test_reading_into_a_log_file_prints_no_per_episode_progress(minari_cache, capfd):

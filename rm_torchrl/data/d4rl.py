@@ -7,6 +7,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from rm_torchrl.data.sources import require_finite
 from rm_torchrl.errors import RMError
 
 EPISODE_ENDS = ("auto", "terminals", "timeouts", "both")
@@ -22,14 +23,16 @@ def _read(f, name: str, path: Path) -> np.ndarray:
         raise RMError(f"{path}: cannot read {name!r}, the file is damaged ({str(err).splitlines()[0][:120]})") from None
 
 
-def _boundaries_consistent(obs: np.ndarray, flags: np.ndarray) -> bool:
-    """Whether every flagged row (but the last) is followed by a jump in the observation."""
-    rows = np.flatnonzero(flags[:-1])
-    if rows.size == 0:
-        return True
+def _jumps(obs: np.ndarray) -> np.ndarray:
+    """Per row but the last, whether the observation jumps to the next row (``_JUMP`` median steps at least)."""
     steps = np.linalg.norm(np.diff(obs, axis=0), axis=1)
-    typical = np.median(steps) or 1e-12
-    return bool((steps[rows] > _JUMP * typical).all())
+    typical = (np.median(steps) if steps.size else 0.0) or 1e-12
+    return steps > _JUMP * typical
+
+
+def _boundaries_consistent(jumps: np.ndarray, flags: np.ndarray) -> bool:
+    """Whether every flagged row (but the last) is followed by a jump in the observation."""
+    return bool(jumps[flags[:-1]].all())
 
 
 def episode_end_flags(obs: np.ndarray, terminals: np.ndarray, timeouts: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
@@ -37,15 +40,26 @@ def episode_end_flags(obs: np.ndarray, terminals: np.ndarray, timeouts: np.ndarr
 
     ``auto`` takes both flags, else terminals only, else timeouts only: the first choice whose
     every boundary is a jump in the observation (D4RL v0 files such as door-human-v0 carry
-    timeouts that do not sit at episode ends).
+    timeouts that do not sit at episode ends). When no flag ends an episode before the last row
+    but the observation jumps, ``auto`` refuses rather than make one long episode across what
+    look like boundaries; nor does it cut at the jumps, which also happen inside episodes (54 in
+    door-human-v0 for its 24 boundaries). An explicit mode takes the flags as they are.
     """
     if mode not in EPISODE_ENDS:
         raise RMError(f"episode_ends must be one of {list(EPISODE_ENDS)}, got {mode!r}")
     choices = {"both": terminals | timeouts, "terminals": terminals, "timeouts": timeouts}
     if mode != "auto":
         return choices[mode], mode
+    jumps = _jumps(obs)
+    if not choices["both"][:-1].any() and jumps.any():
+        rows = np.flatnonzero(jumps)
+        raise RMError(
+            f"no terminal or timeout flag ends an episode, yet the observation jumps as at an episode boundary "
+            f"after {rows.size} row(s), first {rows[:5].tolist()}; auto does not guess episodes from jumps: fix the "
+            "flags, or pass episode_ends / --episode-ends both to keep all steps as one episode"
+        )
     for name, flags in choices.items():
-        if _boundaries_consistent(obs, flags):
+        if _boundaries_consistent(jumps, flags):
             return flags, name
     raise RMError(
         "neither terminals nor timeouts mark consistent episode boundaries in this file "
@@ -54,7 +68,11 @@ def episode_end_flags(obs: np.ndarray, terminals: np.ndarray, timeouts: np.ndarr
 
 
 def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
-    """The D4RL arrays of ``path`` (``timeouts`` all False when absent), checked for shape, type and NaN."""
+    """The D4RL arrays of ``path`` (``timeouts`` all False when absent), checked for shape and type.
+
+    Observations, actions and rewards must be real, finite and within float32's range
+    (``require_finite``), checked here before anything casts them to float32.
+    """
     import h5py
 
     if not path.is_file():
@@ -80,14 +98,17 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
     for key in ("rewards", "terminals", "timeouts"):
         if arrays[key].ndim != 1:
             raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
+    values = {}
     for key in ("observations", "actions", "rewards"):
-        if not np.issubdtype(arrays[key].dtype, np.number):
-            raise RMError(f"{path}: {key} must be numeric, got dtype {arrays[key].dtype}")
-    for key in ("observations", "actions", "rewards"):
-        finite = np.isfinite(arrays[key])
-        if not finite.all():
-            rows = np.flatnonzero(~finite.reshape(n, -1).all(1))
-            raise RMError(f"{path}: {key} contain NaN or inf in {rows.size} row(s), first at rows {rows[:5].tolist()}")
+        dtype = arrays[key].dtype
+        try:
+            if not np.issubdtype(dtype, np.number):
+                raise TypeError
+            arrays[key] = arrays[key].astype(dtype.newbyteorder("="), copy=False)  # torch reads native order only
+            values[key] = torch.from_numpy(arrays[key])
+        except TypeError:  # strings, bools, float128
+            raise RMError(f"{path}: {key} must be numeric, got dtype {dtype}") from None
+    require_finite(values, path, unit="row")
     return arrays
 
 

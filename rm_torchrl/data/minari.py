@@ -20,6 +20,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data.datasets import MinariExperienceReplay, minari_data
 
+from rm_torchrl.data.sources import require_finite
 from rm_torchrl.errors import RMError
 
 _BOOKKEEPING = ("index", "_weight", "done", "terminated", "truncated")
@@ -31,7 +32,8 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
     Keys: ``observation`` (tensor, or nested TensorDict for dict spaces), ``action``,
     ``("next", "observation")``, ``("next", "reward")`` float32 (N, 1), ``("next", "terminated" |
     "truncated" | "done")`` bool (N, 1), ``episode`` int64 (N,) in contiguous runs; ``info`` and
-    other tensor entries TorchRL finds are kept. Floating-point data is cast to float32.
+    other tensor entries TorchRL finds are kept. Floating-point data is cast to float32, once checked
+    to be real, finite and within float32's range.
 
     ``download``: ``None`` reads the local Minari cache when the id is there and downloads otherwise,
     ``False`` never touches the network, ``True`` always downloads (ignoring a local copy).
@@ -58,6 +60,8 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
                 f"datasets in the local cache {_cache_dir()} load offline: {_names(local)}"
             ) from err
         data = buffer[:].to_tensordict()
+    data = data.exclude(*_BOOKKEEPING).filter_non_tensor_data()
+    require_finite(data, dataset_id)
     return _canonical(data)
 
 
@@ -97,9 +101,8 @@ def _check_readable(dataset_id: str, metadata: dict) -> None:
 
 
 def _canonical(data: TensorDictBase) -> TensorDict:
-    """Drop replay-buffer bookkeeping and fix dtypes/shapes of the keys the rest of the project reads."""
+    """Fix dtypes/shapes of the keys the rest of the project reads."""
     n = data.batch_size[0]
-    data = data.exclude(*_BOOKKEEPING).filter_non_tensor_data()
     for key in ("observation", "action", ("next", "observation")):
         data.set(key, _to_float32(data.get(key)))
     data.set("episode", data.get("episode").reshape(n).to(torch.int64))

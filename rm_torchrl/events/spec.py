@@ -189,6 +189,29 @@ def _get(obs: TensorDictBase, key: tuple, event: str) -> torch.Tensor:
     return x
 
 
+#: What separates event names where they are written together: group names ``a->b``, order
+#: constraints ``a<b`` and orders ``a,b,c``. A name holding one would make those ambiguous.
+_SEPARATORS = {"->": "group names ('a->b')", "<": "order constraints ('a<b')", ",": "orders ('a,b,c')"}
+
+
+def _default_name(event, i: int) -> str:
+    """An event's own name, a function's name, else ``e<i+1>`` (a lambda's ``<lambda>`` names nothing)."""
+    name = getattr(event, "name", None) or getattr(event, "__name__", None)
+    return name if name and name != "<lambda>" else f"e{i + 1}"
+
+
+def _check_name(name, source: str) -> None:
+    if not isinstance(name, str):
+        raise RMError(f"event spec {source}: event names must be strings, got {name!r}")
+    for sep, where in _SEPARATORS.items():
+        if sep in name:
+            raise RMError(f"event spec {source}: event name {name!r} contains {sep!r}, which separates event names "
+                          f"in {where}; rename the event")
+    if name != name.strip():
+        raise RMError(f"event spec {source}: event name {name!r} starts or ends with a space, which order "
+                      "constraints ('a<b') strip; rename the event")
+
+
 @dataclass
 class EventSpec:
     """Phi: ``spec(td)`` gives a bool tensor ``(*td.batch_size, n)`` of the events that hold."""
@@ -201,7 +224,7 @@ class EventSpec:
         if not self.events:
             raise RMError(f"event spec {self.source}: it declares no events")
         if not self.names:
-            self.names = [getattr(e, "name", None) or getattr(e, "__name__", f"e{i + 1}") for i, e in enumerate(self.events)]
+            self.names = [_default_name(e, i) for i, e in enumerate(self.events)]
         if len(self.names) != len(self.events):
             raise RMError("event spec: one name per event is needed")
         dup = sorted({n for n in self.names if self.names.count(n) > 1})
@@ -209,6 +232,8 @@ class EventSpec:
             raise RMError(f"event spec {self.source}: duplicate event names {dup}")
         if "e0" in self.names:
             raise RMError(f"event spec {self.source}: 'e0' is reserved for the initial RM state")
+        for name in self.names:
+            _check_name(name, self.source)
 
     @property
     def n(self) -> int:

@@ -16,7 +16,8 @@ class LabelRM(DatasetTransform):
 
     Events are rising edges, p_t = Phi(s_{t+1}) - Phi(s_t), fed to the RM in ascending index.
     Instead of stepping the RM through time, each event's first firing step per episode is found
-    with one scatter; an RM state is then just the fired events sorted by (step, index).
+    with one scatter; an RM state is then just the fired events sorted by (step, index). An event
+    that holds from the first step of every episode never fires: ``stats["held_at_start"]`` names them.
     """
 
     def __init__(self, events: EventSpec | str, episode_key="episode", out_key="rm_state"):
@@ -33,8 +34,10 @@ class LabelRM(DatasetTransform):
         starts = episode_runs(episode)
         if "next" not in td.keys():
             raise RMError("LabelRM needs the next observations under ('next', ...) in the dataset")
-        fired = self.spec(td.get("next")) & ~self.spec(td)
+        now = self.spec(td)
+        fired = self.spec(td.get("next")) & ~now
         start_rows = starts.nonzero().squeeze(-1)
+        self._held_at_start = now[start_rows].all(0).tolist()
         n, n_runs, rows = self.rm.n, start_rows.numel(), starts.numel()
         never = torch.iinfo(torch.long).max
         first = torch.full((n_runs * n,), never, dtype=torch.long)
@@ -69,5 +72,6 @@ class LabelRM(DatasetTransform):
 
     def _extra_stats(self) -> dict:
         reached = dict(zip(self.spec.names, self._episodes_reaching))
-        return {"episodes": self._episodes, "episodes_reaching": reached}
+        held = [name for name, h in zip(self.spec.names, self._held_at_start) if h]
+        return {"episodes": self._episodes, "episodes_reaching": reached, "held_at_start": held}
 

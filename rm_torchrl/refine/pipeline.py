@@ -29,9 +29,10 @@ def make_refine_pipeline(
 ) -> Compose:
     """label -> split/group -> order -> splice -> keep shortest -> counterfactual relabel."""
     spec = load_event_spec(events)
+    label = LabelRM(spec, episode_key=episode_key)
     return Compose(
-        LabelRM(spec, episode_key=episode_key),
-        SplitGroup(episode_key=episode_key),
+        label,
+        SplitGroup(episode_key=episode_key, labels=label),
         EventOrder(spec.names, constraints),
         Splice(),
         KeepShortest(alpha),

@@ -15,14 +15,17 @@ class SplitGroup(DatasetTransform):
 
     Writes ``subtrajectory`` (dense id), ``group_from`` = l(u) and ``group_to`` = l(u') of the
     event transition that ends the piece, and keeps only rows of pieces that end in one.
+    ``labels`` (the ``LabelRM`` stage that labelled ``rm_key``, optional) only words the error when
+    no event happens: it names the events that already hold at the first step of every episode.
     """
 
-    def __init__(self, episode_key="episode", rm_key="rm_state"):
+    def __init__(self, episode_key="episode", rm_key="rm_state", labels=None):
         super().__init__(
             in_keys=[episode_key, rm_key, ("next", rm_key)],
             out_keys=["subtrajectory", "group_from", "group_to"],
         )
         self.episode_key, self.rm_key = episode_key, rm_key
+        self.__dict__["labels"] = labels  # a reference, not a submodule: the pipeline holds that stage
 
     def _refine(self, td: TensorDictBase) -> TensorDictBase:
         state, next_state = td.get(self.rm_key), td.get(("next", self.rm_key))
@@ -31,10 +34,8 @@ class SplitGroup(DatasetTransform):
         is_event = (state != next_state).any(-1)
         event_rows = is_event.nonzero().squeeze(-1)
         if event_rows.numel() == 0:
-            raise RMError(
-                "no event ever happens in this dataset: every transition keeps its RM state, so "
-                "there is nothing to split; check the event spec thresholds with `rmrl inspect`"
-            )
+            raise RMError(f"no event ever happens in this dataset: {self._why_none()}; "
+                          "check the event spec thresholds with `rmrl inspect`")
         # A piece ends at an event row; it starts after the previous event row or at its episode start.
         start_rows = episode_start.nonzero().squeeze(-1)
         episode_first = start_rows[torch.searchsorted(start_rows, event_rows, right=True) - 1]
@@ -51,6 +52,15 @@ class SplitGroup(DatasetTransform):
         out.set("group_from", group_from.repeat_interleave(lengths, output_size=total))
         out.set("group_to", group_to.repeat_interleave(lengths, output_size=total))
         return out
+
+    def _why_none(self) -> str:
+        """Why no transition changes the RM state: events that hold from the first step never fire."""
+        held = self.labels.stats.get("held_at_start", []) if self.labels is not None else []
+        if not held:
+            return "every transition keeps its RM state, so there is nothing to split"
+        rest = "" if len(held) == len(self.labels.spec.names) else "; the other events never start to hold"
+        return (f"{', '.join(map(repr, held))} already {'holds' if len(held) == 1 else 'hold'} at the first step of "
+                f"every episode, and an event happens only when it starts to hold{rest}")
 
     def _extra_stats(self) -> dict:
         return {"subtrajectories": self._pieces}
