@@ -591,3 +591,12 @@ def test_door_human_v0_with_its_flags_zeroed_is_refused_by_auto(tmp_path, capsys
                      "boundary after 54 row(s), first [248, 299, 576, 599, 825]") == 2, err
     assert "Traceback" not in err and not (tmp_path / "refined").exists() and not any(cache.rglob("zeroed-v0*"))
     assert load_d4rl_hdf5(path, episode_ends="both").batch_size[0] == 6728  # asked for: one episode
+
+
+@pytest.mark.parametrize("dtype", [np.longdouble, bool, "S4"])
+def test_observations_torch_cannot_hold_are_refused_naming_the_dtype(tmp_path, dtype):
+    obs, actions, rewards, last = steps_of([5, 6])
+    path = write_h5(tmp_path / "d.hdf5", obs.astype(dtype), actions, rewards, terminals=flags(len(obs), last))
+    with pytest.raises(RMError, match=rf"observations must hold integers or floats \(float64 at most\), got dtype "
+                                      rf"{re.escape(str(np.dtype(dtype)))}"):
+        load_d4rl_hdf5(path)

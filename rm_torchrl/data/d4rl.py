@@ -1,6 +1,7 @@
 """D4RL-format HDF5 files (``observations``, ``actions``, ``rewards``, ``terminals``, ``timeouts``)."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -100,14 +101,13 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
             raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
     values = {}
     for key in ("observations", "actions", "rewards"):
-        dtype = arrays[key].dtype
-        try:
-            if not np.issubdtype(dtype, np.number):
-                raise TypeError
-            arrays[key] = arrays[key].astype(dtype.newbyteorder("="), copy=False)  # torch reads native order only
-            values[key] = torch.from_numpy(arrays[key])
-        except TypeError:  # strings, bools, float128
-            raise RMError(f"{path}: {key} must be numeric, got dtype {dtype}") from None
+        array = arrays[key]
+        if np.issubdtype(array.dtype, np.number):
+            arrays[key] = array = array.astype(array.dtype.newbyteorder("="), copy=False)  # torch takes native order
+            with contextlib.suppress(TypeError):  # float128 has no torch dtype
+                values[key] = torch.from_numpy(array)
+        if key not in values:
+            raise RMError(f"{path}: {key} must hold integers or floats (float64 at most), got dtype {array.dtype}")
     require_finite(values, path, unit="row")
     return arrays
 
