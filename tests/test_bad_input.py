@@ -417,7 +417,8 @@ def test_a_yaml_event_name_with_an_arrow_is_a_one_line_cli_error(tmp_path, capsy
 
     path, _ = make_file(tmp_path, [6, 7])
     spec = tmp_path / "spec.yaml"
-    spec.write_text("events:\n  - {name: a, index: 1, op: '>', value: 2}\n  - {name: a->b, index: 1, op: '>', value: 3}\n")
+    spec.write_text("events:\n  - {name: a, index: 1, op: '>', value: 2}\n"
+                    "  - {name: a->b, index: 1, op: '>', value: 3}\n")
     assert main(["refine", "--dataset", str(path), "--events", str(spec), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert f"rmrl refine: error: event spec {spec}: event name 'a->b' contains '->'" in err and "Traceback" not in err
