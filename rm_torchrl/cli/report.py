@@ -1,7 +1,7 @@
 """``rmrl report RUN_DIR... [--out DIR]``: Table 1, Table 2 and Figure 5 of the paper from training runs.
 
 Writes ``DIR/results.md`` (what was measured, the final scores per dataset x method as mean ± std
-over seeds, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
+over seeds, or the value alone for one seed, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
 on refined data, ``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ def _write_text(path: Path, text: str) -> None:
 def run(args) -> int:
     from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves
     from rm_torchrl.report.runs import group_runs, load_runs
-    from rm_torchrl.report.tables import results_markdown, results_table
+    from rm_torchrl.report.tables import nonfinite_lines, results_markdown, results_table
 
     if args.decimals < 0 or args.decimals > 6:
         raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
@@ -60,6 +60,8 @@ def run(args) -> int:
     for line in skipped:
         print(f"rmrl report: left out {line}", file=sys.stderr)
     groups = group_runs(runs)
+    for line in nonfinite_lines(groups):
+        print(f"rmrl report: left out of the statistics: {line}", file=sys.stderr)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RMError(f"--out {out} exists and is not a directory")
