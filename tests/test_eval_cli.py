@@ -103,3 +103,15 @@ def test_video_progress_is_whole_lines_and_the_adroit_notice_is_silenced(run_dir
     bar = [line for line in err.splitlines() if line.startswith("video x.gif:")]
     assert "\r" not in err and bar and "21/21" in bar[-1], err  # the reset and 20 steps
     assert ADROIT_NOTICE not in err  # AdroitHandDoor-v1's reward is corrected by D4RLReward here
+
+
+def test_report_gifs_without_an_opengl_backend_still_write_the_report(run_dir, tmp_path):
+    out = tmp_path / "report"
+    proc = rmrl("report", run_dir, "--out", out, "--gifs", "--gif-steps", "3", gl="glfw")
+    stdout, err = proc.communicate(timeout=300)
+    assert proc.returncode == 2, err
+    message = error_line(err, "report")
+    assert message.startswith(f"{out / 'results.md'} is written without the GIFs of --gifs: cannot render "
+                              "'AdroitHandDoor-v1' with MUJOCO_GL=glfw")
+    assert "| tiny |" in stdout and "## Final evaluation (Table 1)" in (out / "results.md").read_text()
+    assert (out / "learning_curves.png").is_file() and not list((out / "gifs").iterdir())

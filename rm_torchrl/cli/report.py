@@ -55,6 +55,8 @@ def run(args) -> int:
 
     if args.decimals < 0 or args.decimals > 6:
         raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
+    if getattr(args, "gifs", False) and getattr(args, "gif_steps", 100) < 1:
+        raise RMError(f"--gif-steps must be positive, got {args.gif_steps}")
     skipped: list[str] = []
     runs = load_runs(args.paths, dataset_from=args.dataset_from, skipped=skipped)
     for line in skipped:
@@ -78,13 +80,19 @@ def run(args) -> int:
     elif (out / SIZES).is_file():
         (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
     text = results_markdown(runs, groups, args.decimals, figures, skipped)
+    gif_error = None
     if getattr(args, "gifs", False):  # callers building their own Namespace (rmrl demo) leave it out
-        text += _gifs(runs, out, getattr(args, "gif_steps", 100))
+        try:
+            text += _gifs(runs, out, getattr(args, "gif_steps", 100))
+        except RMError as err:  # no OpenGL backend, say: the tables and figures are still written
+            gif_error = err
     _write_text(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))
     print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} runs)", file=sys.stderr)
+    if gif_error is not None:
+        raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")
     return 0
 
 
@@ -92,8 +100,6 @@ def _gifs(runs, out: Path, steps: int) -> str:
     """A GIF of one episode of each run's last checkpoint, and the Markdown that shows them."""
     from rm_torchrl.train.policy import load_policy
 
-    if steps < 1:
-        raise RMError(f"--gif-steps must be positive, got {steps}")
     (out / "gifs").mkdir(exist_ok=True)
     lines = ["", "## Final policies", ""]
     for run in sorted(runs, key=lambda r: r.path.name):
