@@ -90,7 +90,7 @@ def run(args) -> int:
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))
-    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} runs)", file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} run{'s' * (len(runs) != 1)})", file=sys.stderr)
     if gif_error is not None:
         raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")
     return 0

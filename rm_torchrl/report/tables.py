@@ -147,7 +147,8 @@ def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
         f"({len(datasets(groups))} dataset{'s' * (len(datasets(groups)) != 1)} × "
         f"{len(methods(groups))} method{'s' * (len(methods(groups)) != 1)}), "
         f"seed{'s' * (len(seeds) != 1)} {_join(seeds)}; the final evaluation at gradient step {last:,}"
-        + (f" ({_join(episodes)} episodes per evaluation)." if episodes and episodes[0] > 0 else "."),
+        + (f" ({_join(episodes)} episode{'s' * (episodes != [1])} per evaluation)." if episodes and episodes[0] > 0
+           else "."),
     ]
     if len(finals) > 1:
         ends = ", ".join(f"{s:,} ({n} run{'s' * (n != 1)})" for s, n in sorted(finals.items()))
