@@ -436,3 +436,27 @@ def test_console_script_error_exit_code(tmp_path, tiny):
     assert proc.stdout == ""
     assert proc.stderr == "rmrl refine: error: alpha must lie in (0, 1], got 1.5\n"
     assert not out.exists()
+
+
+@pytest.mark.parametrize("fmt", ["dot", "mermaid"])
+def test_rm_graph_order_draws_one_path(capsys, tmp_path, fmt):
+    code, text, err = run(capsys, "rm-graph", "--events", "door", "--format", fmt, "--order", "door_0.2,reach_handle")
+    assert code == 0, err
+    assert "(door_0.2, reach_handle, e0, e0)" in text and "door_1.0" not in text
+    assert text.count("(door_0.2, e0, e0, e0)") == 1 and text.count("reach_handle") == 2  # 1 node of 3, 1 edge of 2
+    target = tmp_path / f"path.{fmt}"
+    code, out, err = run(capsys, "rm-graph", "--events", "door", "--format", fmt, "--order",
+                         "door_0.2,reach_handle", "--out", target)
+    assert code == 0 and target.read_text() == text.rstrip("\n") + "\n"
+    assert f"wrote the 3-state path e0 > door_0.2 > reach_handle of the RM to {target}" in out
+
+
+@pytest.mark.parametrize("order, message", [
+    ("reach_handle,door_9,door_1.0,open", "the order names events the spec does not have: door_9, open "
+                                          "(its events: reach_handle, door_0.2, door_1.0, door_1.35)"),
+    ("reach_handle,door_0.2,reach_handle", "the order repeats reach_handle: each event occurs once on an RM path"),
+])
+def test_rm_graph_bad_order_is_one_line(capsys, order, message):
+    code, out, err = run(capsys, "rm-graph", "--events", "door", "--order", order)
+    assert code == 2 and out == ""
+    assert error_line(err, "rm-graph") == message

@@ -142,3 +142,36 @@ def test_bad_input_is_one_line():
         D4RLReward("hammer")
     with pytest.raises(RMError, match="39-value v1 observation, got 30"):
         D4RLReward("door")(transitions(np.zeros((2, 30)), np.zeros(2)))
+
+
+NOTICE_PROBE = """
+import sys, torch
+from rm_torchrl.train import load_recipe
+from rm_torchrl.train.data import PolicyInput
+from rm_torchrl.train.evaluate import make_eval_env
+recipe = load_recipe(None, ["dataset=door-human-v0", "method=iql"] + sys.argv[1:])
+env = make_eval_env(recipe, PolicyInput(["observation"], 39, 0, torch.zeros(39), torch.ones(39), None))
+print(float(env.rollout(2)["next", "reward"].sum()))
+"""
+
+
+@pytest.mark.parametrize("overrides, kept", [
+    (["eval.env=AdroitHandDoor-v1"], False),  # D4RLReward corrects the reward the notice is about
+    (["eval.env=AdroitHandDoor-v1", "eval.reward=env"], True),  # the v1 env's own reward: the notice holds
+    (["eval.env=AdroitHandDoor-v1", "+eval.env_kwargs.reward_type=sparse"], True),  # not corrected either
+])
+def test_gymnasium_robotics_notice_is_silenced_only_where_the_reward_is_corrected(overrides, kept):
+    """gymnasium-robotics 1.4.2 prints its notice once, on import, so each case is a fresh process."""
+    import os
+    import subprocess
+    import sys
+
+    from rm_torchrl.envs.d4rl_reward import ADROIT_NOTICE
+
+    proc = subprocess.run([sys.executable, "-c", NOTICE_PROBE, *overrides], capture_output=True, text=True,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    from farama_notifications import notifications
+
+    printed = gymnasium_robotics.__version__ in notifications.get("gymnasium_robotics", {})  # 1.2.1-1.4.2
+    assert (ADROIT_NOTICE in proc.stderr) == (kept and printed), proc.stderr

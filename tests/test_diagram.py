@@ -131,3 +131,40 @@ def test_too_many_states(writer):
         writer(EventOrderedRM(10))
     with pytest.raises(RMError, match="max_states"):
         writer(rm, max_states=0)
+
+
+# --- one event order's path (issue 19: rmrl rm-graph --order) ------------------------------
+
+@pytest.mark.parametrize("order", [["e2", "e3", "e1"], ["e3", "e1"]])
+def test_an_order_draws_only_its_path_with_the_full_graphs_ids(order):
+    rm = EventOrderedRM(3)
+    full_nodes, full_edges = parse_dot(to_dot(rm))
+    nodes, edges = parse_dot(to_dot(rm, order=order))
+    assert len(nodes) == len(order) + 1 and len(edges) == len(order)
+    assert set(nodes.items()) <= set(full_nodes.items())  # same ids, labels and colours as the whole RM
+    assert edges <= full_edges and edges == set(zip(
+        ["(e0, e0, e0)", *(f"({', '.join(order[:i] + ['e0'] * (3 - i))})" for i in range(1, len(order)))],
+        order, [f"({', '.join(order[:i] + ['e0'] * (3 - i))})" for i in range(1, len(order) + 1)]))
+    terminal = [label for label, filled in nodes.values() if filled]
+    assert terminal == (["(e2, e3, e1)"] if len(order) == 3 else [])
+    mm_nodes, mm_edges, mm_terminal = parse_mermaid(to_mermaid(rm, order=order))
+    assert set(mm_nodes.values()) == {label for label, _ in nodes.values()} and mm_edges == edges
+    assert mm_terminal == set(terminal)
+
+
+def test_a_path_is_drawn_however_many_states_the_rm_has():
+    rm = EventOrderedRM(10)  # 9,864,101 states: the whole RM is refused, one path is 11 nodes
+    nodes, edges = parse_dot(to_dot(rm, order=[f"e{k}" for k in range(10, 0, -1)]))
+    assert len(nodes) == 11 and len(edges) == 10
+
+
+@pytest.mark.parametrize("order, message", [
+    (["e1", "x", "e2", "y", "x"], r"^the order names events the spec does not have: x, y \(its events: e1, e2, e3\)$"),
+    (["e1", "e2", "e1"], r"^the order repeats e1: each event occurs once on an RM path$"),
+    (["e1", "", "e2"], r"^an order is one or more event names separated by commas, got 'e1,,e2'$"),
+    ([], r"^an order is one or more event names"),
+])
+def test_a_bad_order_is_one_line_naming_the_events(order, message):
+    for writer in (to_dot, to_mermaid):
+        with pytest.raises(RMError, match=message):
+            writer(EventOrderedRM(3), order=order)

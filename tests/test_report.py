@@ -411,3 +411,44 @@ def test_rmrl_report_subcommand(reported, tmp_path, capsys):
     assert main(["report", str(root / "relocate-cloned"), "--out", str(tmp_path / "o")]) == 0
     assert table_rows(capsys.readouterr().out)["relocate-cloned"][-1] == "**492.4 ± 8.0**"
     assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+
+
+# --- non-finite evaluations and single seeds (issue 19, case 13) ----------------------------
+
+def test_one_seed_shows_its_value_alone_never_plus_minus_zero(tmp_path, capsys):
+    write_run(tmp_path, "door-human-bc", 0, "bc", False, "door", {6000: 2.0})
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 5.0})
+    assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
+    out = capsys.readouterr().out
+    assert table_rows(out)["door-human"] == ["2.0", "**5.0**"]
+    assert "±" not in out
+    assert "one seed: its value alone" in (tmp_path / "out" / "results.md").read_text()
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_a_nonfinite_final_evaluation_is_left_out_and_named(tmp_path, capsys, bad):
+    for seed, value in zip(SEEDS, (4.0, 6.0, float(bad))):
+        write_run(tmp_path / "runs", "door-human", seed, "iql", True, "door", {2000: 1.0, 6000: value})
+    write_run(tmp_path / "runs", "door-human-bc", 0, "bc", False, "door", {2000: 1.0, 6000: float(bad)})
+    assert cli_report.run(args(tmp_path / "runs", out=tmp_path / "out")) == 0
+    captured = capsys.readouterr()
+    rows = table_rows(captured.out)
+    # the two finite seeds: mean 5, sample std 1.4; the BC cell has no finite seed left
+    assert rows["door-human"] == ["non-finite ‡", "5.0 ± 1.4 (n=2) ‡"]
+    assert "nan" not in captured.out and "inf" not in captured.out
+    for name in ("door-human-seed2", "door-human-bc-seed0"):
+        line = f"rmrl report: left out of the statistics: {name}: the final evaluation (step 6,000) has score {bad}"
+        assert line in captured.err.splitlines()
+    results = (tmp_path / "out" / "results.md").read_text()
+    assert "‡ Left out of the statistics" in results and "- door-human-seed2: the final evaluation" in results
+    assert (tmp_path / "out" / "learning_curves.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_nonfinite_evaluations_are_missing_points_of_the_curve(tmp_path):
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {2000: 1.0, 4000: float("nan"), 6000: 3.0})
+    write_run(tmp_path, "door-human", 1, "iql", True, "door", {2000: 3.0, 4000: 5.0, 6000: float("inf")})
+    (group,) = group_runs(load_runs([tmp_path]))
+    steps, mean, std = group.curve()
+    assert mean.tolist() == [2.0, 5.0, 3.0]
+    assert std.tolist() == [pytest.approx(2 ** 0.5), 0.0, 0.0]
+    assert group.mean == 3.0 and group.std is None and [r.seed for r in group.nonfinite] == [1]

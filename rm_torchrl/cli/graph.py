@@ -1,4 +1,4 @@
-"""``rmrl rm-graph``: the RM of an event spec as Graphviz DOT or Mermaid text."""
+"""``rmrl rm-graph``: the RM of an event spec as Graphviz DOT or Mermaid text (``--order a,b,c``: that order's path)."""
 from __future__ import annotations
 
 import os
@@ -12,7 +12,8 @@ from rm_torchrl.rm.machine import EventOrderedRM
 
 def run(args) -> int:
     rm = EventOrderedRM(load_event_spec(args.events).names)
-    text = (to_dot if args.format == "dot" else to_mermaid)(rm)
+    order = None if getattr(args, "order", None) is None else args.order.split(",")
+    text = (to_dot if args.format == "dot" else to_mermaid)(rm, order=order)
     if args.out:
         out = Path(args.out)
         tmp = out.with_name(f".{out.name}.tmp")
@@ -23,7 +24,9 @@ def run(args) -> int:
             if tmp.parent.is_dir():
                 tmp.unlink(missing_ok=True)
             raise RMError(f"cannot write --out {out}: {err.strerror}") from None
-        print(f"wrote the {rm.num_states}-state RM to {args.out}")
+        what = (f"the {len(order) + 1}-state path {' > '.join(['e0', *(e.strip() for e in order)])} of the RM"
+                if order else f"the {rm.num_states}-state RM")
+        print(f"wrote {what} to {args.out}")
     else:
         print(text)
     return 0

@@ -61,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("rm-graph", help="draw the event-ordered RM (Graphviz DOT or Mermaid)")
     p.add_argument("--events", required=True, metavar="NAME_OR_YAML")
     p.add_argument("--format", choices=("dot", "mermaid"), default="dot")
+    p.add_argument("--order", metavar="A,B,C", help="draw only the path of this event order (comma-separated "
+                                                    "event names of the spec, each once; some or all of them)")
     p.add_argument("--out", metavar="FILE", help="write to FILE instead of standard output")
     p.set_defaults(run="rm_torchrl.cli.graph:run")
 

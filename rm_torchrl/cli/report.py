@@ -1,7 +1,7 @@
 """``rmrl report RUN_DIR... [--out DIR]``: Table 1, Table 2 and Figure 5 of the paper from training runs.
 
 Writes ``DIR/results.md`` (what was measured, the final scores per dataset x method as mean ± std
-over seeds, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
+over seeds, or the value alone for one seed, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
 on refined data, ``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
 """
 from __future__ import annotations
@@ -51,15 +51,19 @@ def _write_text(path: Path, text: str) -> None:
 def run(args) -> int:
     from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves
     from rm_torchrl.report.runs import group_runs, load_runs
-    from rm_torchrl.report.tables import results_markdown, results_table
+    from rm_torchrl.report.tables import nonfinite_lines, results_markdown, results_table
 
     if args.decimals < 0 or args.decimals > 6:
         raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
+    if getattr(args, "gifs", False) and getattr(args, "gif_steps", 100) < 1:
+        raise RMError(f"--gif-steps must be positive, got {args.gif_steps}")
     skipped: list[str] = []
     runs = load_runs(args.paths, dataset_from=args.dataset_from, skipped=skipped)
     for line in skipped:
         print(f"rmrl report: left out {line}", file=sys.stderr)
     groups = group_runs(runs)
+    for line in nonfinite_lines(groups):
+        print(f"rmrl report: left out of the statistics: {line}", file=sys.stderr)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RMError(f"--out {out} exists and is not a directory")
@@ -76,13 +80,19 @@ def run(args) -> int:
     elif (out / SIZES).is_file():
         (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
     text = results_markdown(runs, groups, args.decimals, figures, skipped)
+    gif_error = None
     if getattr(args, "gifs", False):  # callers building their own Namespace (rmrl demo) leave it out
-        text += _gifs(runs, out, getattr(args, "gif_steps", 100))
+        try:
+            text += _gifs(runs, out, getattr(args, "gif_steps", 100))
+        except RMError as err:  # no OpenGL backend, say: the tables and figures are still written
+            gif_error = err
     _write_text(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))
-    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} runs)", file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} run{'s' * (len(runs) != 1)})", file=sys.stderr)
+    if gif_error is not None:
+        raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")
     return 0
 
 
@@ -90,8 +100,6 @@ def _gifs(runs, out: Path, steps: int) -> str:
     """A GIF of one episode of each run's last checkpoint, and the Markdown that shows them."""
     from rm_torchrl.train.policy import load_policy
 
-    if steps < 1:
-        raise RMError(f"--gif-steps must be positive, got {steps}")
     (out / "gifs").mkdir(exist_ok=True)
     lines = ["", "## Final policies", ""]
     for run in sorted(runs, key=lambda r: r.path.name):

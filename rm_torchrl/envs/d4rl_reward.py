@@ -12,8 +12,14 @@ are part of the v1 observation after the step:
 - relocate (``relocate_v0.py`` there): ``obs[30:33]`` is palm - ball.
 
 Checked against the stored rewards of D4RL's ``door-human-v0.hdf5`` in ``tests/test_d4rl_reward.py``.
+
+gymnasium-robotics 1.2.1-1.4.2 print :data:`ADROIT_NOTICE` on stderr when imported (through
+``farama_notifications``, not :mod:`warnings`); :func:`import_gymnasium_robotics` leaves it out
+for an evaluation env this transform corrects, and only then.
 """
 from __future__ import annotations
+
+import sys
 
 import torch
 from tensordict import TensorDictBase
@@ -27,6 +33,33 @@ DISTANCE_SLICES = {"door": (slice(35, 38), 39), "relocate": (slice(30, 33), 39)}
 CORRECTION = 0.2
 #: gymnasium ids of the v1 envs whose dense reward this corrects -> task.
 V1_ENVS = {"AdroitHandDoor-v1": "door", "AdroitHandRelocate-v1": "relocate"}
+
+
+#: The start of the notice gymnasium-robotics 1.2.1-1.4.2 print when imported: the v1 Adroit dense rewards changed.
+ADROIT_NOTICE = ("AdroitHandRelocateDense-v1, AdroitHandHammerDense-v1, AdroitHandDoorDense-v1 environment's "
+                 "reward functions were updated")
+
+
+def import_gymnasium_robotics(quiet: bool):
+    """``gymnasium_robotics``, imported without its :data:`ADROIT_NOTICE` when ``quiet`` (the env is wrapped
+    by :class:`D4RLReward`, which restores D4RL's reward); every other notice, and this one otherwise, stays."""
+    if quiet and "gymnasium_robotics" not in sys.modules:  # it prints only on the first import
+        try:
+            from farama_notifications import notifications
+        except ImportError:
+            notifications = {}
+        saved = notifications.get("gymnasium_robotics")
+        if isinstance(saved, dict):
+            notifications["gymnasium_robotics"] = {
+                version: text for version, text in saved.items() if not str(text).startswith(ADROIT_NOTICE)}
+        try:
+            import gymnasium_robotics
+        finally:
+            if isinstance(saved, dict):
+                notifications["gymnasium_robotics"] = saved
+    import gymnasium_robotics
+
+    return gymnasium_robotics
 
 
 def d4rl_reward_task(env_id: str, env_kwargs: dict | None = None) -> str | None:

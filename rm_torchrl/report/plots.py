@@ -67,8 +67,8 @@ def _metric_label(group: Group) -> str:
 
 def plot_learning_curves(groups: Iterable[Group], path: str | os.PathLike, ncols: int = 3) -> Path:
     """One panel per dataset: x = gradient steps, y = the metric, one line per method (mean over
-    seeds) with a shaded ± std band; seeds evaluated at different steps are interpolated onto a
-    common grid (:meth:`Group.curve`)."""
+    seeds) with a shaded ± std band where there are several seeds; seeds evaluated at different
+    steps are interpolated onto a common grid (:meth:`Group.curve`)."""
     groups = list(groups)
     if not groups:
         raise RMError("no runs to plot")
@@ -103,7 +103,7 @@ def plot_learning_curves(groups: Iterable[Group], path: str | os.PathLike, ncols
     handles = [Line2D([], [], color=colors[m], lw=2.2 if m == OURS else 1.5, label=m) for m in labels]
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(labels), 6), frameon=False)
     n_seeds = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]}–{seeds[-1]}"
-    fig.suptitle(f"Learning curves (mean ± std over {n_seeds} seed{'s' * (seeds != [1])})")
+    fig.suptitle("Learning curves (one seed)" if seeds == [1] else f"Learning curves (mean ± std over {n_seeds} seeds)")
     return _save(fig, path)
 
 

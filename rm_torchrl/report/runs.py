@@ -118,6 +118,8 @@ class Run:
     method: str
     metric: str
     _scalars: dict | None = field(default=None, repr=False)
+    #: how reports name the run: its path below the root :func:`load_runs` found it in (else its directory name)
+    where: str = ""
 
     @property
     def name(self) -> str:
@@ -153,6 +155,15 @@ class Run:
     @property
     def final_value(self) -> float:
         return float(self.values[-1])
+
+    @property
+    def finite(self) -> bool:
+        """Whether the final evaluation is a number (a policy gone NaN evaluates to nan or inf)."""
+        return math.isfinite(self.final_value)
+
+    @property
+    def shown(self) -> str:
+        return self.where or self.path.name
 
     @property
     def episodes(self) -> int:
@@ -364,6 +375,7 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
             continue
         try:
             runs.append(read_run(run_dir, dataset_from))
+            runs[-1].where = shown
         except RMError as err:
             if "has no evaluations" not in str(err):
                 raise
@@ -397,7 +409,18 @@ class Group:
 
     @property
     def final_values(self) -> np.ndarray:
+        """The final metric of every seed, finite or not."""
         return np.array([r.final_value for r in self.runs])
+
+    @property
+    def scored(self) -> list[Run]:
+        """The seeds whose final evaluation is finite: the only ones the statistics use."""
+        return [r for r in self.runs if r.finite]
+
+    @property
+    def nonfinite(self) -> list[Run]:
+        """The seeds whose final evaluation is nan or inf, left out of the statistics."""
+        return [r for r in self.runs if not r.finite]
 
     @property
     def final_steps(self) -> list[int]:
@@ -405,32 +428,36 @@ class Group:
 
     @property
     def mean(self) -> float:
-        return float(np.mean(self.final_values))
+        """Mean final metric over the finite seeds (nan when none is finite)."""
+        values = [r.final_value for r in self.scored]
+        return float(np.mean(values)) if values else math.nan
 
     @property
-    def std(self) -> float:
-        """Sample standard deviation (ddof=1) over seeds; 0 for a single seed."""
-        values = self.final_values
-        return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+    def std(self) -> float | None:
+        """Sample standard deviation (ddof=1) over the finite seeds; None below two: one value has no spread."""
+        values = [r.final_value for r in self.scored]
+        return float(np.std(values, ddof=1)) if len(values) > 1 else None
 
     def curve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(steps, mean, std) of the metric over seeds.
 
         Seeds evaluated at the same steps are stacked as they are; otherwise every seed is
         linearly interpolated onto the union of all evaluation steps inside the range that all
-        seeds cover (never extrapolated). ``std`` is the sample std (0 with one seed).
+        seeds cover (never extrapolated). Non-finite evaluations count as missing. ``std`` is
+        the sample std (0 where only one seed has a value).
         """
         steps = [r.steps for r in self.runs]
+        values = [np.where(np.isfinite(r.values), r.values, np.nan) for r in self.runs]
         if all(len(s) == len(steps[0]) and np.array_equal(s, steps[0]) for s in steps):
             grid = steps[0]
-            stack = np.stack([r.values for r in self.runs])
+            stack = np.stack(values)
         else:
             lo = max(float(s[0]) for s in steps)
             hi = min(float(s[-1]) for s in steps)
             union = np.unique(np.concatenate(steps))
             grid = union[(union >= lo) & (union <= hi)] if lo <= hi else union
             stack = np.stack([np.where((grid >= r.steps[0]) & (grid <= r.steps[-1]),
-                                       np.interp(grid, r.steps, r.values), np.nan) for r in self.runs])
+                                       np.interp(grid, r.steps, v), np.nan) for r, v in zip(self.runs, values)])
         count = np.sum(~np.isnan(stack), axis=0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns and single seeds

@@ -9,6 +9,8 @@ from rm_torchrl.report.runs import STAGES, Group, Run, datasets, group_runs, met
 
 MISSING = "–"
 DAGGER = "†"
+DOUBLE_DAGGER = "‡"
+NONFINITE = "non-finite"
 
 
 def _fmt(value: float, decimals: int) -> str:
@@ -27,10 +29,13 @@ def _last_step(groups: Sequence[Group]) -> int:
 def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
     """Table 1: rows = datasets, columns = methods, cell = mean ± std over seeds of the final metric.
 
-    The std is the sample std (ddof=1; 0 for one seed). In each row with two or more cells the
-    best mean, compared as printed (to ``decimals``), is in bold (ties all bold). A cell with
-    fewer seeds than the fullest cell says ``(n=k)``; a cell some of whose seeds stopped
-    before the last step of the report is marked with a dagger.
+    The std is the sample std (ddof=1); a cell of one seed shows its value alone (one value has no
+    spread). Seeds whose final evaluation is nan or inf are left out of the statistics and mark the
+    cell with a double dagger (``non-finite`` when no seed is left; :func:`nonfinite_lines` names
+    them). In each row with two or more numbers the best mean, compared as printed (to
+    ``decimals``), is in bold (ties all bold). A cell with fewer scored seeds than the fullest cell
+    says ``(n=k)``; a cell some of whose seeds stopped before the last step of the report is marked
+    with a dagger.
     """
     groups = list(groups)
     if not groups:
@@ -42,7 +47,7 @@ def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
     lines = [_row(["Dataset", *cols]), "|" + "---|" + "---:|" * len(cols)]
     for dataset in datasets(groups):
         row = [by_cell.get((dataset, m)) for m in cols]
-        shown = [float(_fmt(g.mean, decimals)) if g else None for g in row]
+        shown = [float(_fmt(g.mean, decimals)) if g and g.scored else None for g in row]
         filled = [v for v in shown if v is not None]
         best = max(filled) if len(filled) > 1 else None
         cells = []
@@ -50,16 +55,27 @@ def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
             if g is None:
                 cells.append(MISSING)
                 continue
-            text = f"{_fmt(g.mean, decimals)} ± {_fmt(g.std, decimals)}"
-            if best is not None and value == best:
-                text = f"**{text}**"
-            if len(g.runs) != usual_n:
-                text += f" (n={len(g.runs)})"
+            if value is None:
+                text = NONFINITE
+            else:
+                text = _fmt(g.mean, decimals) + ("" if g.std is None else f" ± {_fmt(g.std, decimals)}")
+                if best is not None and value == best:
+                    text = f"**{text}**"
+                if len(g.scored) != usual_n:
+                    text += f" (n={len(g.scored)})"
             if min(g.final_steps) < last:
                 text += f" {DAGGER}"
+            if g.nonfinite:
+                text += f" {DOUBLE_DAGGER}"
             cells.append(text)
         lines.append(_row([dataset, *cells]))
     return "\n".join(lines)
+
+
+def nonfinite_lines(groups: Iterable[Group]) -> list[str]:
+    """One line per run left out of Table 1 because its final evaluation is nan or inf."""
+    return [f"{r.shown}: the final evaluation (step {r.final_step:,}) has {r.metric} {r.final_value}"
+            for g in groups for r in g.nonfinite]
 
 
 def _stage_values(runs: Sequence[Run]) -> dict[str, dict[str, list[int]]]:
@@ -131,7 +147,8 @@ def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
         f"({len(datasets(groups))} dataset{'s' * (len(datasets(groups)) != 1)} × "
         f"{len(methods(groups))} method{'s' * (len(methods(groups)) != 1)}), "
         f"seed{'s' * (len(seeds) != 1)} {_join(seeds)}; the final evaluation at gradient step {last:,}"
-        + (f" ({_join(episodes)} episodes per evaluation)." if episodes and episodes[0] > 0 else "."),
+        + (f" ({_join(episodes)} episode{'s' * (episodes != [1])} per evaluation)." if episodes and episodes[0] > 0
+           else "."),
     ]
     if len(finals) > 1:
         ends = ", ".join(f"{s:,} ({n} run{'s' * (n != 1)})" for s, n in sorted(finals.items()))
@@ -149,7 +166,8 @@ def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
         " (D4RL's reward function; for Adroit v1 envs, their dense reward with D4RL's sign of the distance term)"
         if "d4rl" in conventions else " (the evaluation env's own reward)")
     refined_baselines = any(g.method.endswith("(refined)") for g in groups)
-    lines.append(f"Cell: mean ± std (sample std over seeds) of the final evaluation's {' and '.join(what)}; "
+    lines.append(f"Cell: mean ± sample std over seeds (one seed: its value alone) of the final evaluation's "
+                 f"{' and '.join(what)}; "
                  "the best mean of each dataset is in **bold**. "
                  "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
                  + (" unless marked (refined)." if refined_baselines else "."))
@@ -164,6 +182,10 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
     groups = list(groups) if groups is not None else group_runs(runs)
     parts = ["# Results", "", *_describe(runs, groups), "",
              "## Final evaluation (Table 1)", "", results_table(groups, decimals), ""]
+    left_out = nonfinite_lines(groups)
+    if left_out:
+        parts += [f"{DOUBLE_DAGGER} Left out of the statistics: the final evaluation is not a number.", "",
+                  *(f"- {line}" for line in left_out), ""]
     table2 = stages_table(runs)
     parts += ["## Dataset size after each refinement stage (Table 2)", ""]
     if table2:

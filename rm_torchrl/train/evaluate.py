@@ -6,6 +6,8 @@ data, so the policy sees exactly the features it was trained on.
 from __future__ import annotations
 
 import math
+import os
+import warnings
 
 import torch
 from torchrl.envs import Compose, DeviceCastTransform, DoubleToFloat, ObservationNorm, StepCounter, TransformedEnv
@@ -42,27 +44,32 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
                   render: tuple[int, int] | None = None) -> TransformedEnv:
     """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back.
 
-    ``render=(width, height)`` makes the MuJoCo env render rgb arrays (``env.base_env.render()``).
+    ``render=(width, height)`` makes the MuJoCo env render rgb arrays (``env.base_env.render()``);
+    its first frame is drawn here, so a machine without an OpenGL backend is one line before any
+    episode runs.
     """
     import gymnasium as gym
-    import gymnasium_robotics
     from torchrl.envs import GymEnv
 
     from rm_torchrl.envs import D4RLReward, RMEnvTransform
+    from rm_torchrl.envs.d4rl_reward import import_gymnasium_robotics
 
-    gym.register_envs(gymnasium_robotics)
+    task = reward_convention(recipe)[1]
+    gym.register_envs(import_gymnasium_robotics(quiet=task is not None))  # D4RLReward corrects what it warns of
     try:
         extra = {"render_mode": "rgb_array", "width": render[0], "height": render[1]} if render else {}
         base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs, **extra)
-    except Exception as err:  # gymnasium raises many types for a bad id or kwargs
-        raise RMError(f"cannot make eval env {recipe.eval.env!r}: {type(err).__name__}: {err}") from None
+    except Exception as err:  # gymnasium raises many types for a bad id or kwargs, MuJoCo for a missing GL
+        raise RMError(_no_renderer(recipe, err) if render else
+                      f"cannot make eval env {recipe.eval.env!r}: {type(err).__name__}: {err}") from None
+    if render:
+        base = _render_check(recipe, base)
     transforms = [StepCounter(max_steps=recipe.eval.max_steps)]
     if recipe.eval.observation == "kitchen-v0":
         from rm_torchrl.envs import KitchenV0Observation
 
         transforms.append(KitchenV0Observation())
     transforms.append(DoubleToFloat())
-    task = reward_convention(recipe)[1]
     if task:
         transforms.append(D4RLReward(task))  # reads the raw observation: before ObservationNorm
     if data.events is not None:
@@ -80,6 +87,31 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
     if torch.device(device).type != "cpu":
         env.append_transform(DeviceCastTransform(torch.device(device), orig_device=torch.device("cpu")))
     return env
+
+
+def _no_renderer(recipe: Recipe, err: Exception) -> str:
+    backend = os.environ.get("MUJOCO_GL")
+    text = " ".join(str(err).split()) or type(err).__name__
+    return (f"cannot render {recipe.eval.env!r} with MUJOCO_GL={backend if backend is not None else '(unset)'} "
+            f"({type(err).__name__}: {text}); rendering needs an OpenGL backend for MuJoCo: "
+            "set MUJOCO_GL=egl (or osmesa) on a machine without a display")
+
+
+def _render_check(recipe: Recipe, base):
+    """``base`` once it has drawn a frame; its GL backend's warnings (glfw's) only when it works."""
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            base.reset()
+            frame = base.render()
+        if frame is None or getattr(frame, "ndim", 0) != 3:
+            raise RuntimeError(f"render() returned {type(frame).__name__}, not an rgb array")
+    except Exception as err:
+        base.close()
+        raise RMError(_no_renderer(recipe, err)) from None
+    for w in caught:
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return base
 
 
 class Evaluator:

@@ -33,6 +33,9 @@ from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint
 from rm_torchrl.train.trainer import resolve_device
 
+#: the largest environment seed: gymnasium seeds numpy's generators, which take 32-bit seeds here
+SEED_MAX = 2 ** 32 - 1
+
 
 @dataclass
 class LoadedPolicy:
@@ -49,26 +52,47 @@ class LoadedPolicy:
         if episodes is not None:
             recipe.eval.episodes = episodes
         if seed is not None:
-            recipe.seed = seed
+            recipe.seed = check_seed(seed)
         evaluator = Evaluator(recipe, self.inputs, self.policy, self.device)
         try:
             return evaluator.run()
         finally:
             evaluator.env.close()
 
-    def video(self, path, episodes: int = 1, seed: int | None = None, size: tuple[int, int] = (320, 320),
-              fps: int = 20, max_steps: int | None = None) -> Path:
-        """``episodes`` rendered episodes as ``path`` (.gif or .mp4), the RM state on every frame."""
-        from rm_torchrl.train.video import render_episodes, write_video
+    def render_env(self, size: tuple[int, int] = (320, 320)) -> TransformedEnv:
+        """An env that renders ``size`` frames, its first frame drawn: without an OpenGL backend for
+        MuJoCo this is a one-line :class:`RMError`, so callers can check before a long evaluation."""
+        return self.make_env(render=size)
 
-        env = self.make_env(render=size)
+    def video(self, path, episodes: int = 1, seed: int | None = None, size: tuple[int, int] = (320, 320),
+              fps: int = 20, max_steps: int | None = None, env: TransformedEnv | None = None) -> Path:
+        """``episodes`` rendered episodes as ``path`` (.gif or .mp4), the RM state on every frame.
+
+        ``env`` is a :meth:`render_env` to use (left open); without it one is made and closed here.
+        """
+        from rm_torchrl.train.video import check_video_path, render_episodes, write_video
+
+        check_video_path(path)
+        if episodes < 1:
+            raise RMError(f"a video needs at least one episode, got {episodes}")
+        seed = self.recipe.seed if seed is None else check_seed(seed)
+        own = env is None
+        env = self.render_env(size) if own else env
         try:
             names = list(self.inputs.events.names) if self.inputs.events is not None else None
             frames = render_episodes(env, self.policy, episodes, max_steps or self.recipe.eval.max_steps, names,
-                                     self.recipe.seed if seed is None else seed)
+                                     seed, desc=f"video {Path(path).name}")
         finally:
-            env.close()
+            if own:
+                env.close()
         return write_video(frames, path, fps)
+
+
+def check_seed(seed, what: str = "seed") -> int:
+    """``seed`` if gymnasium and numpy take it (an integer in 0..2**32-1), else a one-line RMError."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX:
+        raise RMError(f"{what} must be an integer in 0..{SEED_MAX} (2**32-1), got {seed!r}")
+    return seed
 
 
 def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedPolicy:

@@ -16,6 +16,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.progress import progress_bar
 
 FORMATS = (".gif", ".mp4")
 STRIP = 44  # pixel rows of the caption strip above each frame
@@ -41,36 +42,51 @@ def rm_caption(state: torch.Tensor, names: list[str]) -> tuple[str, str]:
 
 
 def render_episodes(env, policy, episodes: int, max_steps: int, event_names: list[str] | None,
-                    seed: int = 0) -> list[np.ndarray]:
-    """Captioned frames of ``episodes`` deterministic episodes of ``policy`` in ``env`` (which renders rgb arrays)."""
+                    seed: int = 0, desc: str = "video") -> list[np.ndarray]:
+    """Captioned frames of ``episodes`` deterministic episodes of ``policy`` in ``env`` (which renders rgb arrays).
+
+    A progress bar of the frames goes to stderr (whole lines when it is not a terminal).
+    """
     frames = []
     env.set_seed(seed)
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+    per_episode = max_steps + 1
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC), \
+            progress_bar(total=episodes * per_episode, desc=desc, unit="frame", leave=False) as bar:
         for episode in range(episodes):
             td, total, done = env.reset(), 0.0, False
-            for step in range(max_steps + 1):
+            for step in range(per_episode):
                 lines = [f"episode {episode + 1}/{episodes}  step {step}  return {total:.1f}" + ("  (done)" if done else "")]
                 if event_names and "rm_state" in td.keys():
                     lines += list(rm_caption(td["rm_state"].cpu(), event_names))
                 frames.append(caption(np.asarray(env.base_env.render()), lines))
+                bar.update()
                 if done or step == max_steps:
                     break
                 td = env.step(policy(td))
                 total += float(td["next", "reward"].sum())
                 done = bool(td["next", "done"].any())
                 td = step_mdp(td)
+            bar.total -= per_episode - (step + 1)  # an episode that ended early has fewer frames
     return frames
+
+
+def check_video_path(path) -> Path:
+    """``path`` if a video can be written there (a known suffix, an existing directory), else a one-line RMError."""
+    path = Path(path)
+    if path.suffix.lower() not in FORMATS:
+        raise RMError(f"--video must end in {' or '.join(FORMATS)}, got {path.name!r}")
+    if not path.parent.is_dir():
+        raise RMError(f"cannot write {path}: {path.parent} is not a directory")
+    if path.is_dir():
+        raise RMError(f"cannot write {path}: it is a directory")
+    return path
 
 
 def write_video(frames: list[np.ndarray], path, fps: int = 20) -> Path:
     """``frames`` as ``path`` (.gif or .mp4), through a temporary file renamed when complete."""
-    path = Path(path)
-    if path.suffix.lower() not in FORMATS:
-        raise RMError(f"--video must end in {' or '.join(FORMATS)}, got {path.name!r}")
+    path = check_video_path(path)
     if not frames:
         raise RMError("no frames to write")
-    if not path.parent.is_dir():
-        raise RMError(f"cannot write {path}: {path.parent} is not a directory")
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
     try:
         if path.suffix.lower() == ".gif":
@@ -86,6 +102,8 @@ def write_video(frames: list[np.ndarray], path, fps: int = 20) -> Path:
                 raise RMError(f"mp4 videos need imageio and its ffmpeg: pip install 'rm_torchrl[video]' ({err})") from None
             imageio.mimwrite(tmp, frames, fps=fps, macro_block_size=1)
         os.replace(tmp, path)
+    except OSError as err:
+        raise RMError(f"cannot write {path}: {err.strerror or err}") from None
     finally:
         tmp.unlink(missing_ok=True)
     return path
