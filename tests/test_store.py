@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 import pytest
 import torch
@@ -115,14 +114,14 @@ class Boom(RuntimeError):
 
 
 def failing_memmap(monkeypatch):
-    """TensorDict.memmap writes the data, then fails (a crash half-way through the output)."""
-    original = TensorDict.memmap
+    """The data is copied into its memory-mapped files, then that fails (a crash half-way through the output)."""
+    original = TensorDict.update_
 
-    def memmap(self, *args, **kwargs):
+    def update_(self, *args, **kwargs):
         original(self, *args, **kwargs)
         raise Boom("disk full")
 
-    monkeypatch.setattr(TensorDict, "memmap", memmap)
+    monkeypatch.setattr(TensorDict, "update_", update_)
 
 
 def failing_report(monkeypatch):
@@ -175,16 +174,10 @@ def test_interrupt_keeps_previous_output(tmp_path, monkeypatch):
 def test_failed_final_rename_keeps_previous_output(tmp_path, monkeypatch):
     out = tmp_path / "out"
     write_refined(out, sample_td(seed=1), {"v": 1})
-    real_replace = os.replace
-    calls = []
+    def rename_noreplace(src, dst):  # out -> .out.old went through; tmp -> out fails
+        raise OSError("rename failed")
 
-    def replace(src, dst):
-        calls.append((src, dst))
-        if len(calls) == 2:  # out -> .out.old went through; tmp -> out fails
-            raise OSError("rename failed")
-        return real_replace(src, dst)
-
-    monkeypatch.setattr(store.os, "replace", replace)
+    monkeypatch.setattr(store, "rename_noreplace", rename_noreplace)
     with pytest.raises(OSError):
         write_refined(out, sample_td(n=4, seed=2), {"v": 2}, overwrite=True)
     monkeypatch.undo()

@@ -1,6 +1,8 @@
 """One entry point for every dataset source the CLI and recipes accept."""
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import torch
@@ -18,11 +20,15 @@ def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
     """
     if not source:
         raise RMError("no dataset given")
+    _check_path(source)
     if Path(source).is_dir():
         raise RMError(f"{source} is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari "
                       "dataset name")
     if source.startswith("minari:"):
         from rm_torchrl.data.minari import load_minari
+
+        if not source[len("minari:"):]:
+            raise RMError("minari: needs a Minari dataset id after it, e.g. minari:D4RL/door/human-v2")
 
         td = load_minari(source[len("minari:"):])
     elif Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
@@ -35,6 +41,17 @@ def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
         td = load_minari(source, download=False)
     require_finite(td, source)
     return td
+
+
+def _check_path(source: str) -> None:
+    """A symlink loop or a dangling link named as such (elsewhere they read as "does not exist")."""
+    try:
+        os.stat(source)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise RMError(f"{source} is a symlink loop (following its links leads back to it); give the real file") from None
+        if os.path.islink(source):
+            raise RMError(f"{source} is a symbolic link to {os.readlink(source)}, which does not exist") from None
 
 
 def require_finite(td: TensorDictBase, source: str) -> None:
