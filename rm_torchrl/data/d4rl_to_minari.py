@@ -39,8 +39,8 @@ IMPORT_METADATA_KEY = "rm_torchrl_import"
 #: In the dataset's directory (beside ``data/``): which command wrote it, and its files.
 MINARI_MARKER = ".rm_torchrl-dataset"
 _VERSIONED = ("rm_torchrl", "gymnasium-robotics", "mujoco", "minari", "gymnasium", "h5py", "numpy")
-#: HDF5 space a Minari episode takes beyond its arrays (measured: about 15 KiB), with a margin.
-_EPISODE_OVERHEAD = 64 << 10
+#: HDF5 space a Minari episode takes beyond its arrays (measured: 15 to 25 KiB), with a margin.
+_EPISODE_OVERHEAD = 32 << 10
 
 
 @dataclass(frozen=True)
@@ -188,7 +188,7 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
     made: list[Path] = []
     try:
         try:
-            reserve_space(tmp_root, nbytes + _EPISODE_OVERHEAD * episodes + (1 << 20))
+            reserve_space(tmp_root, nbytes + _EPISODE_OVERHEAD * episodes + (256 << 10))
         except OSError as err:
             raise write_failure(err, final) from None
         with _datasets_path(tmp_root), warnings.catch_warnings():
