@@ -275,8 +275,9 @@ def small_disk(path: Path, size: str):
         subprocess.run(["umount", str(path)], check=True)
 
 
-def test_refine_on_a_full_disk(tmp_path, tiny, big):
-    with small_disk(tmp_path / "disk", "512k") as disk:
+@pytest.mark.parametrize("size", ["160k", "512k"])  # full as torch creates the files (160k), or as they fill
+def test_refine_on_a_full_disk(tmp_path, tiny, big, size):
+    with small_disk(tmp_path / "disk", size) as disk:
         out = disk / "out"
         [(code, log)] = run_forked([refine_args(tiny, out)], tmp_path / "logs0")
         assert code == 0, log
@@ -311,6 +312,31 @@ def test_minari_writers_on_a_full_disk(tmp_path, tiny, big, command):
         with pytest.MonkeyPatch.context() as patch:
             patch.setenv("MINARI_DATASETS_PATH", str(cache))
             assert minari.load_dataset(dataset_id).total_episodes > 1
+
+
+def fill(disk: Path) -> None:
+    """Writes ``disk/filler`` until the filesystem has no space left."""
+    with open(disk / "filler", "wb", buffering=0) as f, contextlib.suppress(OSError):
+        while True:
+            f.write(b"\0" * 4096)
+
+
+@pytest.mark.parametrize("command", ["refine", "import-d4rl", "generate"])
+def test_a_completely_full_disk(tmp_path, tiny, command):
+    with small_disk(tmp_path / "disk", "256k") as disk:
+        cache = disk / "minari"
+        cache.mkdir()
+        fill(disk)
+        argv, target = {
+            "refine": (refine_args(tiny, disk / "out"), disk / "out"),
+            "import-d4rl": (["import-d4rl", tiny, "--out-name", "safety/full-v0"], cache / "safety/full-v0"),
+            "generate": (["generate", "relocate-human", "--out-name", "safety/full-v0", "--episodes", "1"],
+                         cache / "safety/full-v0"),
+        }[command]
+        [(code, log)] = run_forked([argv], tmp_path / "logs", {"MINARI_DATASETS_PATH": str(cache)})
+        assert (code, last_line(log)) == (2, f"rmrl {command}: error: no space left on device writing {target}"), log
+        assert "Traceback" not in log
+        assert sorted(p.name for p in disk.iterdir()) == ["filler", "minari"] and leftovers(cache) == []
 
 
 # --------------------------------------------------------------------------------------------

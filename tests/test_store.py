@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import time
 
 import pytest
 import torch
@@ -183,6 +185,41 @@ def test_failed_final_rename_keeps_previous_output(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert read_refined(out)[1] == {"v": 1}
     assert siblings(tmp_path) == ["out"]
+
+
+# --------------------------------------------------------------------------------------------
+# Placement and temporary directories
+# --------------------------------------------------------------------------------------------
+
+def test_rename_noreplace_never_replaces(tmp_path):
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    (src / "data").mkdir(parents=True)
+    dst.mkdir()  # empty: a plain rename would replace it
+    with pytest.raises(FileExistsError):
+        store.rename_noreplace(src, dst)
+    assert siblings(src) == ["data"] and siblings(dst) == []
+    dst.rmdir()
+    store.rename_noreplace(src, dst)
+    assert siblings(tmp_path) == ["dst"] and siblings(dst) == ["data"]
+
+
+def test_temp_dir_keeps_one_being_set_up_and_removes_an_old_one_without_pid(tmp_path):
+    young, old = tmp_path / ".out.young.tmp", tmp_path / ".out.old.tmp"
+    young.mkdir()  # made by a run that has not written its process id yet
+    old.mkdir()
+    os.utime(old, (time.time() - 3600,) * 2)  # a run killed before writing it, long ago
+    tmp = store.temp_dir(tmp_path, ".out.", ".tmp")
+    assert young.is_dir() and not old.exists()
+    assert (tmp / ".pid").read_text() == str(os.getpid())
+
+
+def test_marker_lists_every_file(tmp_path):
+    out = write_refined(tmp_path / "out", sample_td(), REPORT)
+    marker = json.loads((out / store.MARKER).read_text())
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert marker == {"written_by": "rmrl refine", "files": files}
+    assert store.not_replaceable(out, store.MARKER, "rmrl refine") is None
+    assert store.not_replaceable(out, store.MARKER, "rmrl other") == "was written by rmrl refine"
 
 
 # --------------------------------------------------------------------------------------------

@@ -15,7 +15,6 @@ Each writer (import, the refined export, generate) marks its datasets with the l
 """
 from __future__ import annotations
 
-import errno
 import hashlib
 import importlib.metadata
 import json
@@ -31,7 +30,8 @@ from typing import Callable
 import numpy as np
 
 from rm_torchrl.data.d4rl import episode_end_flags, read_d4rl_arrays
-from rm_torchrl.data.store import not_replaceable, rename_noreplace, reserve_space, temp_dir, write_failure, write_marker
+from rm_torchrl.data.store import (no_space, not_replaceable, rename_noreplace, reserve_space, temp_dir, write_failure,
+                                   write_marker)
 from rm_torchrl.errors import RMError
 
 #: Key of the dataset metadata that records how the dataset was made.
@@ -165,11 +165,6 @@ def _episode_buffer(arrays: dict, first: int, last: int):
     )
 
 
-def _no_space(err: BaseException) -> bool:
-    """Whether ``err`` is a full disk (HDF5 reports it as a RuntimeError naming errno 28)."""
-    return getattr(err, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "errno = 28," in str(err)
-
-
 @contextmanager
 def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool, episodes: int, transitions: int,
                       writer: MinariWriter, nbytes: int):
@@ -183,7 +178,10 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
     """
     from minari.dataset.minari_dataset import MinariDataset
 
-    tmp_root = temp_dir(cache, writer.tmp_prefix)  # also removes what killed imports left behind
+    try:
+        tmp_root = temp_dir(cache, writer.tmp_prefix)  # also removes what killed imports left behind
+    except OSError as err:
+        raise write_failure(err, final) from None
     old = tmp_root / ".previous"
     made: list[Path] = []
     try:
@@ -219,8 +217,8 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
             raise appeared from None
     except (OSError, RuntimeError) as err:
         _put_back(final, old, made)
-        if _no_space(err):
-            raise write_failure(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), final) from None
+        if no_space(err):
+            raise write_failure(err, final) from None
         raise
     except BaseException:
         _put_back(final, old, made)

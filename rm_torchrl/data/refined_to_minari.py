@@ -15,8 +15,9 @@ Layout of an episode of T transitions (Minari's: T + 1 observations, T of everyt
 The dataset metadata (``rm_torchrl_refined``) records the source, event spec, alpha, best order,
 group sizes, Table 2 stages and package versions. Like ``rmrl import-d4rl`` it is built in a hidden
 temporary cache and renamed into place only when complete, and marked as an export: ``overwrite``
-(``rmrl refine --overwrite-minari``) replaces only an earlier export, never a downloaded or imported dataset. ``load_dataset`` reads it back already
-refined: ``rmrl train`` on it uses its RM states instead of refining again.
+(``rmrl refine --overwrite-minari``) replaces only an earlier export, never a downloaded or imported
+dataset. ``load_dataset`` reads it back already refined: ``rmrl train`` on it uses its RM states
+instead of refining again.
 """
 from __future__ import annotations
 
@@ -27,8 +28,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from rm_torchrl.data.d4rl_to_minari import (MinariWriter, _cache_root, _check_target, _space, _versions, building_in_cache,
-                                            check_dataset_name)
+from rm_torchrl.data.d4rl_to_minari import (MinariWriter, _cache_root, _check_target, _space, _versions,
+                                            building_in_cache, check_dataset_name)
 from rm_torchrl.errors import RMError
 from rm_torchrl.segments import episode_runs
 

@@ -49,7 +49,8 @@ def _check_path(source: str) -> None:
         os.stat(source)
     except OSError as err:
         if err.errno == errno.ELOOP:
-            raise RMError(f"{source} is a symlink loop (following its links leads back to it); give the real file") from None
+            raise RMError(f"{source} is a symlink loop (following its links leads back to it); "
+                          "give the real file") from None
         if os.path.islink(source):
             raise RMError(f"{source} is a symbolic link to {os.readlink(source)}, which does not exist") from None
 

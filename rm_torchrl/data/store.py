@@ -91,7 +91,8 @@ def _legacy_refined(out: Path) -> Callable[[str], bool] | None:
     """A refine output of a version whose marker listed nothing: its files are tensordict's and report.json."""
     if not (out / MARKER).is_file():
         return None
-    return lambda p: p in ("report.json", MARKER) or re.fullmatch(r"data/([^/]+/)*(meta\.json|[^/]+\.memmap)", p) is not None
+    tensordict_file = re.compile(r"data/([^/]+/)*(meta\.json|[^/]+\.memmap)")
+    return lambda p: p in ("report.json", MARKER) or tensordict_file.fullmatch(p) is not None
 
 
 def check_out(out: str | Path, overwrite: bool) -> Path:
@@ -146,8 +147,12 @@ def temp_dir(parent: Path, prefix: str, suffix: str = "") -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=parent))
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the output is an ordinary directory
-    (tmp / _PID).write_text(str(os.getpid()))
+    try:
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the output is an ordinary directory
+        (tmp / _PID).write_text(str(os.getpid()))
+    except BaseException:  # a full disk, say: nothing is left behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return tmp
 
 
@@ -197,9 +202,16 @@ def reserve_space(directory: Path, nbytes: int) -> None:
         os.unlink(path)
 
 
-def write_failure(err: OSError, path: Path) -> RMError:
-    """The one-line error for an OSError while writing ``path`` (``no space left on device writing ...``)."""
-    reason = err.strerror or str(err)
+def no_space(err: BaseException) -> bool:
+    """Whether ``err`` is a full disk: an OSError, or a RuntimeError of torch or HDF5 that names errno 28."""
+    return (getattr(err, "errno", None) in (errno.ENOSPC, errno.EDQUOT)
+            or re.search(r"No space left on device|errno = 28\b", str(err)) is not None)
+
+
+def write_failure(err: BaseException, path: Path) -> RMError:
+    """The one-line error for a failed write of ``path``, e.g. ``no space left on device writing PATH``."""
+    code = getattr(err, "errno", None) or (errno.ENOSPC if no_space(err) else None)
+    reason = os.strerror(code) if code else str(err)
     return RMError(f"{reason[:1].lower()}{reason[1:]} writing {path}")
 
 
@@ -241,13 +253,17 @@ def write_refined(out: str | Path, data: TensorDictBase, report: dict, overwrite
         _restore_previous(out, old)
         tmp = temp_dir(out.parent, f".{out.name}.", ".tmp")
     except OSError as err:
+        if no_space(err):
+            raise write_failure(err, out) from None
         raise RMError(f"cannot write into {out.parent}: {err.strerror}") from None
     try:
         try:
             _memmap(data, tmp / "data")
             (tmp / "report.json").write_text(json.dumps(report, indent=2) + "\n")
             write_marker(tmp, MARKER, COMMAND)
-        except OSError as err:
+        except (OSError, RuntimeError) as err:  # torch reports a full disk as a RuntimeError
+            if not isinstance(err, OSError) and not no_space(err):
+                raise
             raise write_failure(err, out) from None
         if out.exists():
             check_out(out, overwrite)  # again: another run may have placed it, or a user added files, meanwhile
