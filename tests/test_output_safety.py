@@ -100,31 +100,36 @@ def test_overwrite_refuses_a_directory_without_the_marker(capsys, tmp_path, tiny
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
-@pytest.mark.parametrize("mine", ["notes.txt", "data/notes.txt", "data/next/plot.png", "figures/"])
+@pytest.mark.parametrize("mine", ["notes.txt", "data/notes.txt", "data/next/plot.png", "figures/", "data/thesis@"])
 def test_overwrite_refuses_its_own_output_holding_a_users_file(capsys, tmp_path, tiny, mine):
+    """``name/`` is an empty directory, ``name@`` a link to a file elsewhere."""
     out = tmp_path / "out"
     code, _, err = run(capsys, *refine_args(tiny, out, "--alpha", "0.5"))
     assert code == 0, err
     listed = json.loads((out / MARKER).read_text())
     assert listed["written_by"] == "rmrl refine"
     assert set(listed["files"]) == {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    path = out / mine.rstrip("@")
     if mine.endswith("/"):
-        (out / mine).mkdir()
+        path.mkdir()
+    elif mine.endswith("@"):
+        (tmp_path / "thesis.tex").write_text("mine")
+        path.symlink_to(tmp_path / "thesis.tex")
     else:
-        (out / mine).write_text("mine")
+        path.write_text("mine")
     before = snapshot(out)
     message = assert_error(capsys, "refine", refine_args(tiny, out, "--overwrite"), "replaces only an earlier refine output")
-    assert f"also holds files rmrl refine did not write: ['{mine}']" in message
-    assert snapshot(out) == before and (out / mine).exists()
+    assert f"also holds files rmrl refine did not write: ['{mine.rstrip('@')}']" in message
+    assert snapshot(out) == before and os.path.lexists(path)
 
     if mine.endswith("/"):
-        (out / mine).rmdir()
+        path.rmdir()
     else:
-        (out / mine).unlink()
+        path.unlink()
     code, _, err = run(capsys, *refine_args(tiny, out, "--overwrite"))  # nothing foreign left: replaced
     assert code == 0, err
     assert json.loads((out / "report.json").read_text())["alpha"] == 1.0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != "thesis.tex") == ["out"]
 
 
 def test_an_empty_directory_is_replaced(capsys, tmp_path, tiny):
@@ -237,6 +242,21 @@ def test_minari_overwrite_of_its_own_dataset(capsys, tmp_path, cache, tiny, writ
 # --------------------------------------------------------------------------------------------
 # Case 12: two refines racing for one new --out
 # --------------------------------------------------------------------------------------------
+
+def test_racing_imports_into_one_new_name_one_wins_the_other_is_told(tmp_path, cache, tiny, big):
+    sources = (tiny, big)
+    for trial in range(4):
+        dataset_id = f"race{trial}/data-v0"
+        results = run_forked([["import-d4rl", s, "--out-name", dataset_id] for s in sources], tmp_path / f"logs{trial}")
+        codes = [code for code, _ in results]
+        assert sorted(codes) == [0, 2], results
+        winner, loser = (0, 1) if codes[0] == 0 else (1, 0)
+        assert f"rmrl import-d4rl: error: Minari dataset {dataset_id!r} " in last_line(results[loser][1])
+        assert ("already exists" in results[loser][1]) or ("appeared" in results[loser][1])
+        dataset = minari.load_dataset(dataset_id)
+        assert dataset.storage.metadata["rm_torchrl_import"]["source_file"] == sources[winner].name
+    assert not [p for p in leftovers(cache) if p.startswith(".rmrl-")]
+
 
 def test_racing_refines_into_one_new_out_one_wins_the_other_is_told(tmp_path, tiny):
     alphas = ("0.5", "1.0")

@@ -15,6 +15,7 @@ Each writer (import, the refined export, generate) marks its datasets with the l
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
 import json
@@ -202,9 +203,10 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
             )
         write_marker(built, MINARI_MARKER, writer.command)
         for parent in reversed(final.relative_to(cache).parents):
-            if parent != Path(".") and not (cache / parent).exists():
-                (cache / parent).mkdir()
-                made.append(cache / parent)
+            if parent != Path("."):
+                with contextlib.suppress(FileExistsError):  # made meanwhile by a run into the same namespace
+                    (cache / parent).mkdir()
+                    made.append(cache / parent)
         appeared = RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
         if final.exists():
             if not overwrite:
