@@ -8,6 +8,7 @@ so a shifted or reordered round trip cannot pass. The real D4RL files are used w
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 
@@ -116,8 +117,12 @@ def test_round_trip_matches_load_d4rl_hdf5(cache, tmp_path, case):
     assert record["episode_ends_requested"] == mode
     assert record["skipped_single_step_episodes"] == sum(T == 1 for T in lengths)
     assert record["transitions"] == reference.batch_size[0]
-    assert leftovers(cache) == ["tiny", "tiny/data-v0", "tiny/data-v0/data", "tiny/data-v0/data/main_data.hdf5",
-                                "tiny/data-v0/data/metadata.json", "tiny/namespace_metadata.json"]
+    assert leftovers(cache) == ["tiny", "tiny/data-v0", "tiny/data-v0/.rm_torchrl-dataset", "tiny/data-v0/data",
+                                "tiny/data-v0/data/main_data.hdf5", "tiny/data-v0/data/metadata.json",
+                                "tiny/namespace_metadata.json"]
+    marker = json.loads((cache / "tiny/data-v0/.rm_torchrl-dataset").read_text())
+    assert marker == {"written_by": "rmrl import-d4rl",
+                      "files": [".rm_torchrl-dataset", "data/main_data.hdf5", "data/metadata.json"]}
 
 
 def test_dataset_without_namespace_and_without_timeouts(cache, tmp_path):
@@ -287,15 +292,17 @@ def test_failed_final_rename_restores_the_previous_dataset(cache, tmp_path, monk
 
     def replace(src, dst):
         calls.append((Path(src).name, Path(dst).name))
-        if len(calls) == 2:  # old moved aside, then the new one fails to move in
-            raise OSError("rename failed")
         return real_replace(src, dst)
 
+    def rename_noreplace(src, dst):  # old moved aside, then the new one fails to move in
+        raise OSError("rename failed")
+
     monkeypatch.setattr(module.os, "replace", replace)
+    monkeypatch.setattr(module, "rename_noreplace", rename_noreplace)
     with pytest.raises(OSError, match="rename failed"):
         import_d4rl(new, "tiny/data-v0", overwrite=True)
     monkeypatch.setattr(module.os, "replace", real_replace)
-    assert len(calls) == 3  # aside, failed move in, restore
+    assert calls == [("data-v0", ".previous"), (".previous", "data-v0")]  # aside, restore
     assert leftovers(cache) == before
     assert_same_transitions(load_minari("tiny/data-v0", download=False), load_d4rl_hdf5(old))
 
@@ -314,7 +321,7 @@ def test_existing_name_is_refused_unless_overwrite(cache, tmp_path):
     assert_same_transitions(load_minari("tiny/data-v0", download=False), load_d4rl_hdf5(second))
     assert list(minari.list_local_datasets()) == ["tiny/data-v0"]
     assert minari.load_dataset("tiny/data-v0").storage.metadata[IMPORT_METADATA_KEY]["source_file"] == "second.hdf5"
-    assert not [p for p in cache.rglob(".*")]  # no temporary or previous copy left
+    assert [p.name for p in cache.rglob(".*")] == [".rm_torchrl-dataset"]  # no temporary or previous copy left
 
 
 def test_other_datasets_in_the_namespace_are_untouched(cache, tmp_path):

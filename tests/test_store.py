@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 import pytest
 import torch
@@ -115,14 +116,14 @@ class Boom(RuntimeError):
 
 
 def failing_memmap(monkeypatch):
-    """TensorDict.memmap writes the data, then fails (a crash half-way through the output)."""
-    original = TensorDict.memmap
+    """The data is copied into its memory-mapped files, then that fails (a crash half-way through the output)."""
+    original = TensorDict.update_
 
-    def memmap(self, *args, **kwargs):
+    def update_(self, *args, **kwargs):
         original(self, *args, **kwargs)
         raise Boom("disk full")
 
-    monkeypatch.setattr(TensorDict, "memmap", memmap)
+    monkeypatch.setattr(TensorDict, "update_", update_)
 
 
 def failing_report(monkeypatch):
@@ -175,21 +176,50 @@ def test_interrupt_keeps_previous_output(tmp_path, monkeypatch):
 def test_failed_final_rename_keeps_previous_output(tmp_path, monkeypatch):
     out = tmp_path / "out"
     write_refined(out, sample_td(seed=1), {"v": 1})
-    real_replace = os.replace
-    calls = []
+    def rename_noreplace(src, dst):  # out -> .out.old went through; tmp -> out fails
+        raise OSError("rename failed")
 
-    def replace(src, dst):
-        calls.append((src, dst))
-        if len(calls) == 2:  # out -> .out.old went through; tmp -> out fails
-            raise OSError("rename failed")
-        return real_replace(src, dst)
-
-    monkeypatch.setattr(store.os, "replace", replace)
+    monkeypatch.setattr(store, "rename_noreplace", rename_noreplace)
     with pytest.raises(OSError):
         write_refined(out, sample_td(n=4, seed=2), {"v": 2}, overwrite=True)
     monkeypatch.undo()
     assert read_refined(out)[1] == {"v": 1}
     assert siblings(tmp_path) == ["out"]
+
+
+# --------------------------------------------------------------------------------------------
+# Placement and temporary directories
+# --------------------------------------------------------------------------------------------
+
+def test_rename_noreplace_never_replaces(tmp_path):
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    (src / "data").mkdir(parents=True)
+    dst.mkdir()  # empty: a plain rename would replace it
+    with pytest.raises(FileExistsError):
+        store.rename_noreplace(src, dst)
+    assert siblings(src) == ["data"] and siblings(dst) == []
+    dst.rmdir()
+    store.rename_noreplace(src, dst)
+    assert siblings(tmp_path) == ["dst"] and siblings(dst) == ["data"]
+
+
+def test_temp_dir_keeps_one_being_set_up_and_removes_an_old_one_without_pid(tmp_path):
+    young, old = tmp_path / ".out.young.tmp", tmp_path / ".out.old.tmp"
+    young.mkdir()  # made by a run that has not written its process id yet
+    old.mkdir()
+    os.utime(old, (time.time() - 3600,) * 2)  # a run killed before writing it, long ago
+    tmp = store.temp_dir(tmp_path, ".out.", ".tmp")
+    assert young.is_dir() and not old.exists()
+    assert (tmp / ".pid").read_text() == str(os.getpid())
+
+
+def test_marker_lists_every_file(tmp_path):
+    out = write_refined(tmp_path / "out", sample_td(), REPORT)
+    marker = json.loads((out / store.MARKER).read_text())
+    files = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert marker == {"written_by": "rmrl refine", "files": files}
+    assert store.not_replaceable(out, store.MARKER, "rmrl refine") is None
+    assert store.not_replaceable(out, store.MARKER, "rmrl other") == "was written by rmrl refine"
 
 
 # --------------------------------------------------------------------------------------------

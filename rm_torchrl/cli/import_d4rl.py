@@ -19,7 +19,8 @@ def add_arguments(p) -> None:
                    help="which HDF5 flags end episodes (default auto: the consistent ones)")
     p.add_argument("--env-id", metavar="ID",
                    help="gymnasium id stored as the dataset's env spec, e.g. AdroitHandDoor-v1 or FrankaKitchen-v1")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset of that name")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the dataset of that name if rmrl import-d4rl wrote it")
 
 
 def run(args) -> int:

@@ -45,7 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--minari-name", metavar="NAME",
                    help="also write the refined data as the local Minari dataset NAME (namespace/name-vN): one "
                         "episode per sub-trajectory, observations with the RM state")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output directory (and Minari dataset)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out if it is an earlier refine output holding only what refine wrote")
+    p.add_argument("--overwrite-minari", action="store_true",
+                   help="replace the Minari dataset --minari-name if an earlier rmrl refine --minari-name wrote it")
     p.set_defaults(run="rm_torchrl.cli.refine:run")
 
     p = sub.add_parser("inspect", help="per-event statistics of a dataset")

@@ -75,7 +75,7 @@ def run(args) -> int:
     check_alpha(opts["alpha"])
     check_out(opts["out"], args.overwrite)  # before the work, not after it
     if args.minari_name:
-        check_minari_target(args.minari_name, args.overwrite)
+        check_minari_target(args.minari_name, args.overwrite_minari)
     spec = load_event_spec(opts["events"])
     print(f"loading {opts['dataset']} ...", file=sys.stderr)
     data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])
@@ -86,7 +86,7 @@ def run(args) -> int:
     print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
     if args.minari_name:
         dataset_id = export_refined_minari(refined, report.to_dict(), args.minari_name, str(opts["events"]), spec.names,
-                                           source=str(opts["dataset"]), overwrite=args.overwrite)
+                                           source=str(opts["dataset"]), overwrite=args.overwrite_minari)
         episodes = int(run_starts(refined.get("episode")).sum())
         print(f"wrote the local Minari dataset {dataset_id}: {episodes:,} episodes (one per sub-trajectory), "
               f"{refined.batch_size[0]:,} steps")

@@ -8,17 +8,22 @@ inside an episode are kept. Episodes of a single step hold no transition and are
 
 The dataset is built by ``minari.create_dataset_from_buffers`` in a hidden temporary cache next to
 the real one (``<cache>/.rmrl-import-*``, which Minari's listings skip) and renamed into
-``<cache>/<namespace>/<name-vN>`` only once it is complete, so a failure or an interruption leaves
-no half-written dataset behind (and, with ``overwrite``, the previous dataset in place).
+``<cache>/<namespace>/<name-vN>`` only once it is complete, so a failure, an interruption or a full
+disk leaves no half-written dataset behind (and, with ``overwrite``, the previous dataset in place).
+Each writer (import, the refined export, generate) marks its datasets with the list of their files
+(:data:`MINARI_MARKER`): ``overwrite`` replaces only a dataset of its own kind holding nothing else.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
+import json
 import os
 import shutil
 import warnings
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
@@ -26,12 +31,40 @@ from typing import Callable
 import numpy as np
 
 from rm_torchrl.data.d4rl import episode_end_flags, read_d4rl_arrays
+from rm_torchrl.data.store import (no_space, not_replaceable, rename_noreplace, reserve_space, temp_dir, write_failure,
+                                   write_marker)
 from rm_torchrl.errors import RMError
 
 #: Key of the dataset metadata that records how the dataset was made.
 IMPORT_METADATA_KEY = "rm_torchrl_import"
+#: In the dataset's directory (beside ``data/``): which command wrote it, and its files.
+MINARI_MARKER = ".rm_torchrl-dataset"
 _VERSIONED = ("rm_torchrl", "gymnasium-robotics", "mujoco", "minari", "gymnasium", "h5py", "numpy")
-_TMP_PREFIX = ".rmrl-import-"
+#: HDF5 space a Minari episode takes beyond its arrays (measured: 15 to 25 KiB), with a margin.
+_EPISODE_OVERHEAD = 32 << 10
+
+
+@dataclass(frozen=True)
+class MinariWriter:
+    """A command that writes Minari datasets: its ``flag`` replaces only datasets that ``command`` wrote."""
+
+    command: str
+    flag: str
+    metadata_key: str  # how its datasets written before markers existed are recognised
+    tmp_prefix: str
+
+    def legacy(self, final: Path):
+        """A dataset of this writer without a marker (older versions): its own files are Minari's two."""
+        try:
+            metadata = json.loads((final / "data" / "metadata.json").read_text())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(metadata, dict) or self.metadata_key not in metadata:
+            return None
+        return lambda p: p in ("data/metadata.json", "data/main_data.hdf5")
+
+
+IMPORT = MinariWriter("rmrl import-d4rl", "--overwrite", IMPORT_METADATA_KEY, ".rmrl-import-")
 
 
 def import_d4rl(
@@ -48,8 +81,8 @@ def import_d4rl(
     (see ``episode_end_flags``). ``env_id``: a registered gymnasium id (gymnasium-robotics envs
     included) stored as the dataset's env spec; its spaces are used where they fit the data, else the
     spaces are Boxes inferred from the data (observations unbounded, actions within the data's range).
-    ``overwrite`` replaces an existing dataset ``name``. ``progress(written, total)`` is called as
-    episodes are written.
+    ``overwrite`` replaces an existing dataset ``name`` that ``import_d4rl`` wrote (and nothing else).
+    ``progress(written, total)`` is called as episodes are written.
     """
     dataset_id = check_dataset_name(name)
     path = Path(path)
@@ -67,7 +100,7 @@ def import_d4rl(
 
     cache = _cache_root()
     final = cache / dataset_id
-    _check_target(final, dataset_id, cache, overwrite)
+    _check_target(final, dataset_id, cache, overwrite, IMPORT)
 
     env = _make_env(env_id) if env_id else None
     try:
@@ -135,20 +168,28 @@ def _episode_buffer(arrays: dict, first: int, last: int):
 
 @contextmanager
 def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool, episodes: int, transitions: int,
-                      prefix: str):
+                      writer: MinariWriter, nbytes: int):
     """Minari writes ``dataset_id`` into a hidden temporary cache inside the ``with``; then it is checked.
 
-    Only a dataset holding the expected ``episodes`` and ``transitions`` is moved to ``final``; on any
-    failure or interruption the cache is left as it was (a replaced copy is put back).
+    Only a dataset holding the expected ``episodes`` and ``transitions`` is marked as ``writer``'s and
+    moved to ``final`` (replacing only a dataset ``_check_target`` allows); on any failure or
+    interruption the cache is left as it was (a replaced copy is put back). ``nbytes``: the size of
+    the arrays written, so that a disk too full for them is refused before HDF5 starts (it crashes
+    when a write fails).
     """
     from minari.dataset.minari_dataset import MinariDataset
 
-    from rm_torchrl.data.store import temp_dir
-
-    tmp_root = temp_dir(cache, prefix)  # also removes what killed imports left behind
+    try:
+        tmp_root = temp_dir(cache, writer.tmp_prefix)  # also removes what killed imports left behind
+    except OSError as err:
+        raise write_failure(err, final) from None
     old = tmp_root / ".previous"
     made: list[Path] = []
     try:
+        try:
+            reserve_space(tmp_root, nbytes + _EPISODE_OVERHEAD * episodes + (256 << 10))
+        except OSError as err:
+            raise write_failure(err, final) from None
         with _datasets_path(tmp_root), warnings.catch_warnings():
             # author_email / eval_env / env_spec "is None" notices: there is nothing better to give
             warnings.filterwarnings("ignore", message=r".*(is set to None|env_spec is None)", category=UserWarning)
@@ -160,27 +201,44 @@ def building_in_cache(dataset_id: str, final: Path, cache: Path, overwrite: bool
                 f"the written dataset holds {check.total_episodes} episodes and {check.total_steps} steps, "
                 f"expected {episodes} and {transitions}; nothing was written"
             )
+        write_marker(built, MINARI_MARKER, writer.command)
         for parent in reversed(final.relative_to(cache).parents):
-            if parent != Path(".") and not (cache / parent).exists():
-                (cache / parent).mkdir()
-                made.append(cache / parent)
+            if parent != Path("."):
+                with contextlib.suppress(FileExistsError):  # made meanwhile by a run into the same namespace
+                    (cache / parent).mkdir()
+                    made.append(cache / parent)
+        appeared = RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
         if final.exists():
             if not overwrite:
-                raise RMError(f"Minari dataset {dataset_id!r} appeared in {cache} meanwhile; nothing was written")
+                raise appeared
+            _check_target(final, dataset_id, cache, overwrite, writer)  # again: it may have changed meanwhile
             os.replace(final, old)
-        os.replace(built, final)
+        try:
+            rename_noreplace(built, final)
+        except FileExistsError:
+            raise appeared from None
+    except (OSError, RuntimeError) as err:
+        _put_back(final, old, made)
+        if no_space(err):
+            raise write_failure(err, final) from None
+        raise
     except BaseException:
-        if old.exists() and not final.exists():
-            os.replace(old, final)
-        for parent in reversed(made):
-            try:
-                parent.rmdir()
-            except OSError:
-                pass
+        _put_back(final, old, made)
         raise
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     _register_namespace(dataset_id)
+
+
+def _put_back(final: Path, old: Path, made: list[Path]) -> None:
+    """Undoes a failed move into the cache: the replaced dataset back, the namespace folders made for it gone."""
+    if old.exists() and not final.exists():
+        os.replace(old, final)
+    for parent in reversed(made):
+        try:
+            parent.rmdir()
+        except OSError:
+            pass
 
 
 def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, observation_space, action_space,
@@ -189,8 +247,8 @@ def _build_and_move(dataset_id, final, cache, overwrite, arrays, episodes, env, 
 
     total = len(episodes)
     chunk = max(1, total // 100)
-    with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"],
-                           _TMP_PREFIX):
+    with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"], IMPORT,
+                           sum(a.nbytes for a in arrays.values())):
         dataset = minari.create_dataset_from_buffers(
             dataset_id,
             [_episode_buffer(arrays, *episodes[0])],
@@ -259,7 +317,8 @@ def _cache_root() -> Path:
         raise RMError(f"cannot use the Minari cache: {err}") from None
 
 
-def _check_target(final: Path, dataset_id: str, cache: Path, overwrite: bool) -> None:
+def _check_target(final: Path, dataset_id: str, cache: Path, overwrite: bool, writer: MinariWriter) -> None:
+    """Refuses a name that cannot be written, or an existing dataset that ``writer`` may not replace."""
     for parent in final.relative_to(cache).parents:
         if parent != Path(".") and (cache / parent / "data").exists():
             raise RMError(f"cannot put {dataset_id!r} inside the Minari dataset {parent.as_posix()!r}")
@@ -269,7 +328,12 @@ def _check_target(final: Path, dataset_id: str, cache: Path, overwrite: bool) ->
         if not (final / "data").is_dir():
             raise RMError(f"{final} exists and is not a Minari dataset (a namespace?); choose another name")
         if not overwrite:
-            raise RMError(f"Minari dataset {dataset_id!r} already exists in {cache}; pass --overwrite to replace it")
+            raise RMError(f"Minari dataset {dataset_id!r} already exists in {cache}; pass {writer.flag} to replace it")
+        reason = not_replaceable(final, MINARI_MARKER, writer.command, writer.legacy)
+        if reason:
+            raise RMError(f"{writer.flag} replaces only a Minari dataset written by {writer.command}, and "
+                          f"{dataset_id!r} {reason}; delete it yourself (minari delete {dataset_id}) or choose "
+                          "another name")
 
 
 def _make_env(env_id: str):

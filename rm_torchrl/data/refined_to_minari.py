@@ -14,8 +14,10 @@ Layout of an episode of T transitions (Minari's: T + 1 observations, T of everyt
 
 The dataset metadata (``rm_torchrl_refined``) records the source, event spec, alpha, best order,
 group sizes, Table 2 stages and package versions. Like ``rmrl import-d4rl`` it is built in a hidden
-temporary cache and renamed into place only when complete. ``load_dataset`` reads it back already
-refined: ``rmrl train`` on it uses its RM states instead of refining again.
+temporary cache and renamed into place only when complete, and marked as an export: ``overwrite``
+(``rmrl refine --overwrite-minari``) replaces only an earlier export, never a downloaded or imported
+dataset. ``load_dataset`` reads it back already refined: ``rmrl train`` on it uses its RM states
+instead of refining again.
 """
 from __future__ import annotations
 
@@ -26,13 +28,14 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from rm_torchrl.data.d4rl_to_minari import _cache_root, _check_target, _space, _versions, building_in_cache, check_dataset_name
+from rm_torchrl.data.d4rl_to_minari import (MinariWriter, _cache_root, _check_target, _space, _versions,
+                                            building_in_cache, check_dataset_name)
 from rm_torchrl.errors import RMError
 from rm_torchrl.segments import episode_runs
 
 EXPORT_METADATA_KEY = "rm_torchrl_refined"
 RM_STATE_KEY = "rm_state"
-_TMP_PREFIX = ".rmrl-export-"
+EXPORT = MinariWriter("rmrl refine --minari-name", "--overwrite-minari", EXPORT_METADATA_KEY, ".rmrl-export-")
 
 
 def export_refined_minari(data: TensorDictBase, report: dict, name: str, events: str, event_names: list[str], source: str,
@@ -41,7 +44,8 @@ def export_refined_minari(data: TensorDictBase, report: dict, name: str, events:
 
     ``report``: the refinement report (``RefineReport.to_dict()``); ``events``: the event spec's
     name or file and ``event_names`` its events in declared order; ``source``: what was refined
-    (recorded in the metadata). Returns the dataset id.
+    (recorded in the metadata); ``overwrite`` replaces an earlier export ``name`` (and nothing else).
+    Returns the dataset id.
     """
     import minari
     from gymnasium import spaces
@@ -112,7 +116,9 @@ def export_refined_minari(data: TensorDictBase, report: dict, name: str, events:
         "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     chunk = max(1, len(pieces) // 100)
-    with building_in_cache(dataset_id, final, cache, overwrite, len(pieces), record["transitions"], _TMP_PREFIX):
+    nbytes = sum(a.nbytes + b.nbytes for a, b in columns.values()) + sum(
+        x.nbytes for x in (rm, rm_next, actions, rewards, env_rewards, terminated))
+    with building_in_cache(dataset_id, final, cache, overwrite, len(pieces), record["transitions"], EXPORT, nbytes):
         dataset = minari.create_dataset_from_buffers(
             dataset_id, [buffer(*pieces[0])], env=None, observation_space=observation_space,
             action_space=action_space,
@@ -135,10 +141,11 @@ def export_refined_minari(data: TensorDictBase, report: dict, name: str, events:
 
 
 def check_minari_target(name: str, overwrite: bool) -> str:
-    """Refuses a bad name or an existing dataset (without ``overwrite``) before any work is done."""
+    """Refuses a bad name, or an existing dataset (any without ``overwrite``, else one that is not an earlier
+    export), before any work is done."""
     dataset_id = check_dataset_name(name)
     cache = _cache_root()
-    _check_target(cache / dataset_id, dataset_id, cache, overwrite)
+    _check_target(cache / dataset_id, dataset_id, cache, overwrite, EXPORT)
     return dataset_id
 
 

@@ -1,6 +1,8 @@
 """One entry point for every dataset source the CLI and recipes accept."""
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import torch
@@ -18,22 +20,35 @@ def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
     """
     if not source:
         raise RMError("no dataset given")
+    _check_path(source)
     if Path(source).is_dir():
         raise RMError(f"{source} is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari "
                       "dataset name")
     if source.startswith("minari:"):
         from rm_torchrl.data.minari import load_minari
 
-        td = load_minari(source[len("minari:"):])
-    elif Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
+        if not source[len("minari:"):]:
+            raise RMError("minari: needs a Minari dataset id after it, e.g. minari:D4RL/door/human-v2")
+        return load_minari(source[len("minari:"):])
+    if Path(source).suffix in (".hdf5", ".h5") or Path(source).is_file():
         from rm_torchrl.data.d4rl import load_d4rl_hdf5
 
         return load_d4rl_hdf5(source, episode_ends=episode_ends)
-    else:
-        from rm_torchrl.data.minari import load_minari
+    from rm_torchrl.data.minari import load_minari
 
-        td = load_minari(source, download=False)
-    return td
+    return load_minari(source, download=False)
+
+
+def _check_path(source: str) -> None:
+    """A symlink loop or a dangling link named as such (elsewhere they read as "does not exist")."""
+    try:
+        os.stat(source)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise RMError(f"{source} is a symlink loop (following its links leads back to it); "
+                          "give the real file") from None
+        if os.path.islink(source):
+            raise RMError(f"{source} is a symbolic link to {os.readlink(source)}, which does not exist") from None
 
 
 _FLOAT32_MAX = torch.finfo(torch.float32).max

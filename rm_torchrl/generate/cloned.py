@@ -43,6 +43,7 @@ from rm_torchrl.generate.record import (
     Generator,
     _worker_attempt,
     episode_buffer,
+    generate_writer,
     make_env,
     run_episode,
     write_generated,
@@ -316,7 +317,7 @@ def generate_cloned(kind: str, name: str, steps: int = 1_000_000, seed: int = 0,
         raise RMError(f"demo_fraction must be in (0, 1), got {demo_fraction}")
     cache = _cache_root()
     final = cache / dataset_id
-    _check_target(final, dataset_id, cache, overwrite)
+    _check_target(final, dataset_id, cache, overwrite, generate_writer())
     started = time.perf_counter()
 
     source = str(demos_source or spec.default_demos)

@@ -16,8 +16,9 @@ ends when the policy is finished, the environment terminates, or after ``max_ste
 
 The dataset is built by ``minari.create_dataset_from_buffers`` in a hidden temporary cache next to
 the real one (``<cache>/.rmrl-generate-*``) and renamed into place only once it is complete and
-checked, as ``rm_torchrl.data.d4rl_to_minari`` does (whose helpers this module reuses): a failure or
-an interruption leaves no dataset behind, and with ``overwrite`` the previous one stays in place.
+checked, as ``rm_torchrl.data.d4rl_to_minari`` does (whose helpers this module reuses): a failure,
+an interruption or a full disk leaves no dataset behind, and with ``overwrite`` the previous one stays
+in place; ``overwrite`` replaces only a dataset that ``rmrl generate`` wrote.
 """
 from __future__ import annotations
 
@@ -40,7 +41,13 @@ from rm_torchrl.errors import RMError
 
 #: Key of the dataset metadata that records how the dataset was generated.
 GENERATE_METADATA_KEY = "rm_torchrl_generate"
-_TMP_PREFIX = ".rmrl-generate-"
+
+
+def generate_writer():
+    """``rmrl generate`` as a Minari writer: ``--overwrite`` replaces only its own datasets."""
+    from rm_torchrl.data.d4rl_to_minari import MinariWriter
+
+    return MinariWriter("rmrl generate", "--overwrite", GENERATE_METADATA_KEY, ".rmrl-generate-")
 
 
 @dataclass(frozen=True)
@@ -236,7 +243,7 @@ def generate_dataset(generator: Generator, name: str, episodes: int = 25, seed: 
         raise RMError(f"--max-steps must be at least 1, got {max_steps}")
     cache = _cache_root()
     final = cache / dataset_id
-    _check_target(final, dataset_id, cache, overwrite)  # fail before minutes of simulation, not after
+    _check_target(final, dataset_id, cache, overwrite, generate_writer())  # fail before minutes of simulation
 
     kept, attempts = collect(generator, int(episodes), int(seed), int(workers), int(max_steps), policy_kwargs,
                              max_attempts, progress)
@@ -296,8 +303,9 @@ def write_generated(dataset_id: str, final: Path, cache: Path, overwrite: bool, 
     from rm_torchrl.data.d4rl_to_minari import _requirements, building_in_cache
 
     version = record["versions"]["rm_torchrl"]
+    nbytes = _nbytes([(b.observations, b.actions, b.rewards, b.infos) for b in buffers])
     with building_in_cache(dataset_id, final, cache, overwrite, record["episodes"], record["transitions"],
-                           _TMP_PREFIX):
+                           generate_writer(), nbytes):
         dataset = minari.create_dataset_from_buffers(
             dataset_id, buffers, env=env, algorithm_name=algorithm,
             author={f"rm_torchrl {version} (rmrl generate)"},
@@ -306,6 +314,15 @@ def write_generated(dataset_id: str, final: Path, cache: Path, overwrite: bool, 
         )
         dataset.storage.update_episode_metadata(episode_metadata)
         dataset.storage.update_metadata({GENERATE_METADATA_KEY: record})
+
+
+def _nbytes(value) -> int:
+    """The bytes of the arrays in ``value`` (arrays, or dicts, lists and tuples of them)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, dict):
+        value = list(value.values())
+    return sum(_nbytes(v) for v in value) if isinstance(value, (list, tuple)) else 0
 
 
 def _write(dataset_id: str, final: Path, cache: Path, overwrite: bool, kept: list[Episode], env, record: dict) -> None:
