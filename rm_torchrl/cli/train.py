@@ -110,7 +110,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
         argv += ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
         os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // jobs))  # the workers' OpenMP
     task = hydra.main(config_path=str(primary.parent), config_name=primary.stem, version_base="1.3")(run_job)
-    stop = _SweepStop() if default_launcher else None
+    stop = _SweepStop() if default_launcher or "hydra/launcher=joblib" in overrides else None
     saved = sys.argv
     sys.argv = ["rmrl train", *argv, *([f"++hydra.job.env_set.{STOP_ENV}={stop.path}"] if stop else [])]
     try:
@@ -154,8 +154,8 @@ class _SweepStop:
     """The parent of a sweep on the default (joblib) launcher, from its start to its end: SIGTERM and
     SIGINT write the stop file that every job reads before it starts, and are forwarded to the loky
     workers that run jobs, whose trainers checkpoint at the next update; the parent itself goes on
-    waiting for them (a second signal interrupts the wait). ``--jobs 1`` runs the jobs in this
-    process: there the trainer's own handler takes the signal (:func:`run_job`)."""
+    waiting for them (a second signal, forwarded too, ends the wait). ``--jobs 1`` runs the jobs in
+    this process: there the trainer's own handler takes the signal (:func:`run_job`)."""
 
     def __init__(self):
         self.dir = tempfile.mkdtemp(prefix="rmrl-sweep-")
@@ -273,7 +273,7 @@ def _saved(runs: list[tuple[Path, str, int]]) -> str:
 
     saved = [f"{run_dir} at step {load_checkpoint(run_dir / CHECKPOINT)['step']} of {steps}"
              for run_dir, status, steps in runs if status == "resumable"]
-    parts = [f"checkpoints: {', '.join(saved)}" if saved else "no run had a checkpoint to write"]
+    parts = [f"checkpoints: {', '.join(saved)}" if saved else "no checkpoint to resume from"]
     statuses = [status for _, status, _ in runs]
     finished, new = statuses.count("finished"), statuses.count("new")
     if finished:
@@ -338,8 +338,9 @@ def run_job(cfg) -> float | None:
         if err.signum in STOP_SIGNALS:
             _write_stop(stop_path, err.signum)
         return None
-    except KeyboardInterrupt:  # a signal outside the training loop (set-up): nothing to checkpoint
-        print(f"{recipe.run_dir if recipe else 'a job'}: stopped outside training", file=sys.stderr, flush=True)
+    except KeyboardInterrupt:  # a signal during set-up, or a second one during training: no checkpoint now
+        print(f"{recipe.run_dir if recipe else 'a job'}: interrupted; its last checkpoint, if any, stays",
+              file=sys.stderr, flush=True)
         _write_stop(stop_path, signal.SIGINT)
         return None
     except RMError as err:
