@@ -104,11 +104,11 @@ def gradient_step(method, terms, batch):
 
 class RunInterrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM stopped the run (or a sweep of runs) between two updates, after its checkpoint
-    was written; ``message`` says what was saved, ``step`` where a single run stopped."""
+    was written; ``message`` says what was saved."""
 
-    def __init__(self, signum: int, message: str, step: int | None = None):
+    def __init__(self, signum: int, message: str):
         super().__init__(message)
-        self.signum, self.message, self.step = signum, message, step
+        self.signum, self.message = signum, message
 
 
 class _StopOnSignal:
@@ -204,11 +204,11 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
             raise RMError(f"{err}; the run stopped, {_kept(run_dir / CHECKPOINT)}") from None
 
 
-def _kept(ckpt_path: Path) -> str:
+def _kept(ckpt_path: Path, hint: str = " (continue with resume=true)") -> str:
     """What a stopped run keeps to resume from."""
     if not ckpt_path.is_file():
         return "no checkpoint was written"
-    return f"its checkpoint of step {load_checkpoint(ckpt_path)['step']} is kept (continue with resume=true)"
+    return f"its checkpoint of step {load_checkpoint(ckpt_path)['step']} is kept{hint}"
 
 
 def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) -> Path:
@@ -315,7 +315,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
             except NonFinite as err:
                 bar.close()
                 message = (f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; "
-                           f"{_kept(ckpt_path)}")
+                           f"{_kept(ckpt_path, hint='')}")
                 mark_failed(run_dir, step, str(err), message)
                 raise RMError(message) from None
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
@@ -345,6 +345,6 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {recipe.trainer.steps}; "
                    "checkpoint written, continue with resume=true")
         stop.forward(message)
-        raise RunInterrupted(stop.signum, message, completed)
+        raise RunInterrupted(stop.signum, message)
     return run_dir
 
