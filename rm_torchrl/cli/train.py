@@ -106,7 +106,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
             "hydra.output_subdir=null", "hydra/job_logging=none"]
     default_launcher = not any(o.startswith("hydra/launcher=") for o in overrides)
     if default_launcher:
-        jobs = max(1, jobs)
+        jobs = max(1, min(jobs, len(combos) if combos else jobs))  # no idle worker: a signal to its group would kill it
         argv += ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs}"]
         os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // jobs))  # the workers' OpenMP
     task = hydra.main(config_path=str(primary.parent), config_name=primary.stem, version_base="1.3")(run_job)
@@ -119,7 +119,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     except SystemExit as exit_:  # hydra reports its own errors (a bad launcher, say) and exits
         if exit_.code:
             raise RMError("the multirun stopped on the error above") from None
-    except KeyboardInterrupt:  # a second signal ended the wait for the jobs: say what they saved
+    except (KeyboardInterrupt, Exception):  # a second signal ended the wait, or loky lost a worker to one
         if not (stop and stop.signum):
             raise
     finally:
