@@ -34,6 +34,7 @@ from tqdm import tqdm
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.train.config import SIGNAL_REPEAT
 from rm_torchrl.train.recipe import build_recipe, hydra_overrides, load_recipe, recipe_path, search_path_override
 
 
@@ -160,7 +161,7 @@ class _SweepStop:
     def __init__(self):
         self.dir = tempfile.mkdtemp(prefix="rmrl-sweep-")
         self.path = os.path.join(self.dir, "stop")
-        self.signum = None
+        self.signum, self.at = None, 0.0
         self._previous = {}
 
     def __enter__(self) -> "_SweepStop":
@@ -179,13 +180,20 @@ class _SweepStop:
         shutil.rmtree(self.dir, ignore_errors=True)
 
     def _handle(self, signum, frame):
-        again = self.signum is not None
+        if self.signum is not None and not _repeated(self.at):
+            return  # the same request (timeout signals its command and then the group)
+        again, self.at = self.signum is not None, time.monotonic()
         self.signum = self.signum or signum
         _write_stop(self.path, signum)
         for pid in _job_workers():
             _kill(pid, signum)
         if again or _JOB.running:  # a second signal; or a job of --jobs 1 still setting up: nothing trained yet
             raise KeyboardInterrupt
+
+
+def _repeated(first: float) -> bool:
+    """Whether a signal now is a second request, not the first one again."""
+    return time.monotonic() - first >= SIGNAL_REPEAT
 
 
 def _write_stop(path: str | None, signum: int) -> None:
@@ -439,7 +447,7 @@ class _Forward:
     running run (each signal once to each run: a second one stops them at once)."""
 
     def __init__(self):
-        self.signum, self.count, self._previous, self._sent = None, 0, {}, {}
+        self.signum, self.count, self.at, self._previous, self._sent = None, 0, 0.0, {}, {}
 
     def __enter__(self) -> "_Forward":
         if _main_thread():
@@ -451,8 +459,8 @@ class _Forward:
             signal.signal(s, handler)
 
     def _handle(self, signum, frame):
-        self.signum = self.signum or signum
-        self.count += 1
+        if self.signum is None or _repeated(self.at):
+            self.signum, self.count, self.at = self.signum or signum, self.count + 1, time.monotonic()
 
     def deliver(self, procs: list[subprocess.Popen]) -> None:
         for proc in procs:

@@ -48,6 +48,9 @@ INTERVALS = {
 #: Seeds every generator a run seeds accepts: numpy's legacy ``RandomState`` is the narrowest (torch
 #: takes up to 2**64-1, gymnasium any int >= 0, none of them a negative one).
 SEED_MAX = 2**32 - 1
+#: Seconds within which a second SIGINT/SIGTERM to a run or a sweep counts as the first one again, not
+#: as the request to stop at once (the trainer's ``_StopOnSignal``, the sweeps' forwarding).
+SIGNAL_REPEAT = 1.0
 
 
 @dataclass

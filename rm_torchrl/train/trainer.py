@@ -24,7 +24,7 @@ from tqdm import tqdm
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.config import SIGNAL_REPEAT, Recipe
 from rm_torchrl.train.data import prepare_data
 from rm_torchrl.train.losses import compile_method
 from rm_torchrl.train.methods import METHODS, build_method
@@ -115,14 +115,14 @@ class _StopOnSignal:
     """SIGINT, SIGTERM (what SLURM and Kubernetes send) and SIGUSR2 (submitit's and SLURM's
     ``--signal`` warning before preemption or the time limit) ask the loop to stop at the next
     update boundary, so the checkpoint holds a whole update and the RNG state right after it; a
-    second signal, :data:`REPEAT` seconds or more after the first, interrupts at once (the last
+    second signal, :data:`SIGNAL_REPEAT` seconds or more after the first, interrupts at once (the last
     periodic checkpoint stays). One sooner counts as the same request: a sweep's parent forwards the
-    signal its jobs may have had already (``timeout`` and Ctrl-C signal the whole process group).
+    signal its jobs may have had already (``timeout`` and Ctrl-C signal the whole process group, and
+    ``timeout`` its command once more).
     After the checkpoint, SIGUSR2 goes on to the handler that was there before: submitit's, which
     requeues the job, whose next start resumes from that checkpoint."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
-    REPEAT = 1.0
 
     def __init__(self):
         self.signum = None
@@ -132,7 +132,7 @@ class _StopOnSignal:
     def _handle(self, signum, frame):
         if self.signum is None:
             self.signum, self._at = signum, time.monotonic()
-        elif time.monotonic() - self._at >= self.REPEAT:
+        elif time.monotonic() - self._at >= SIGNAL_REPEAT:
             raise KeyboardInterrupt
 
     def __enter__(self) -> "_StopOnSignal":
