@@ -321,8 +321,8 @@ def run_job(cfg) -> float | None:
         _JOB.path = stop_path
         _JOB.install()
     recipe = None
-    _JOB.running = True
     try:
+        _JOB.running = True
         hydra_cfg = HydraConfig.get()
         recipe = build_recipe(cfg, _primary_dir(hydra_cfg))
         if not hydra_cfg.sweeper._target_.endswith(".BasicSweeper"):
