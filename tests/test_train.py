@@ -226,6 +226,17 @@ def test_a_resumed_runs_eval_csv_has_one_line_ending(tmp_path, dataset):
         assert b"\r" not in scalars.read_bytes(), scalars
 
 
+def test_a_row_cut_short_is_dropped_when_the_run_resumes(tmp_path, dataset):
+    """A write cut short (a full disk, a kill) leaves an unfinished last row; the resume drops it."""
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=40", "trainer.checkpoint_every=40"]), progress=False)
+    scalars = run_dir / "logs" / "scalars" / "loss_actor.csv"
+    with scalars.open("a") as f:
+        f.write("6")  # the start of the row of step 60
+    train(load_recipe(recipe, ["trainer.steps=60", "resume=true"]), progress=False)
+    assert [line.split(",")[0] for line in scalars.read_text().splitlines()] == ["20", "40", "60"]
+
+
 def test_online_evaluation_in_mujoco(tmp_path, dataset):
     recipe = load_recipe(
         make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 20, every: 10, episodes: 2, score: door}\n"),
