@@ -15,7 +15,15 @@ CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_TMP = "checkpoint.tmp"  # a checkpoint being written (renamed over CHECKPOINT when complete)
 FAILED_FILE = "failed.json"
 LOCK_FILE = ".lock"
-TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, CHECKPOINT_TMP, FAILED_FILE, LOCK_FILE)
+
+
+def temp_name(name: str) -> str:
+    """The file a trainer's file ``name`` is written to before it is renamed over ``name``."""
+    return CHECKPOINT_TMP if name == CHECKPOINT else f".{name}.tmp"
+
+
+TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, FAILED_FILE, LOCK_FILE,
+                 *(temp_name(n) for n in (RECIPE_FILE, EVAL_FILE, REFINE_FILE, CHECKPOINT, FAILED_FILE)))
 
 #: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
 EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from rm_torchrl.cli.main import main
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 
+from test_sweeps import _alive, _children
 from test_train import make_recipe, write_d4rl
 
 
@@ -192,6 +194,124 @@ def test_a_signal_checkpoints_and_the_resumed_run_is_bit_identical(tmp_path, dat
     same_parameters(straight / "checkpoint.pt", resumed / "checkpoint.pt")
     logged = [int(line.split(",")[0]) for line in (resumed / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
     assert logged == list(range(10, 1501, 10))
+
+
+#: A parent built on run_grid (as the benchmarks and the demo are), exiting as ``rmrl`` does on an interruption.
+GRID = """import sys
+from rm_torchrl.cli.train import run_grid
+from rm_torchrl.train.trainer import RunInterrupted
+
+recipe, *overrides = sys.argv[1:]
+try:
+    run_grid([(recipe, [f"seed={k}", *overrides]) for k in range(3)], jobs=2)
+except RunInterrupted as err:
+    print(err.message, file=sys.stderr)
+    sys.exit(128 + err.signum)
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL])
+def test_a_signal_to_run_many_reaches_its_runs_which_checkpoint_and_none_outlives_it(tmp_path, dataset, signum):
+    """SIGTERM/SIGINT: forwarded to the running runs, which checkpoint; the third never starts; the parent
+    says what was saved. SIGKILL (nothing to catch): the runs get SIGTERM as their parent dies and
+    checkpoint all the same. The same grid, run again, resumes them. Piped, each run's lines come
+    through with its name in front."""
+    recipe = make_recipe(tmp_path, dataset)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    steps = ["trainer.log_every=10", "trainer.checkpoint_every=1000000"]
+    proc = subprocess.Popen([sys.executable, "-c", GRID, str(recipe), "trainer.steps=1000000", *steps],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    runs = [tmp_path / "runs" / f"tiny-seed{k}" for k in range(2)]
+    try:
+        end = time.time() + 180
+        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in runs):
+            assert proc.poll() is None and time.time() < end, proc.communicate()
+            time.sleep(0.05)
+        children = _children(proc.pid)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert _alive(children, wait=60) == []
+    stopped = [torch.load(r / "checkpoint.pt", weights_only=True)["step"] for r in runs]
+    assert all(0 < s < 1000000 for s in stopped), stopped
+    assert not (tmp_path / "runs" / "tiny-seed2").exists()
+    if signum != signal.SIGKILL:
+        assert proc.returncode == 128 + signum, err
+        saved = ", ".join(f"{r} at step {s} of 1000000" for r, s in zip(runs, stopped))
+        name = signal.Signals(signum).name
+        assert err.strip().splitlines()[-1] == (f"{name}: stopped; checkpoints: {saved}; 1 not started; "
+                                                "run the same command again to resume them"), err
+        for r, s in zip(runs, stopped):
+            assert f"[{r.name}] tiny:   0%" in err  # its progress, as whole lines
+            assert f"[{r.name}] rmrl train: {name}: stopped after step {s} of 1000000; checkpoint written" in err
+        assert "Traceback" not in err
+    if signum != signal.SIGTERM:
+        return
+    target = max(stopped) + 20
+    again = subprocess.run([sys.executable, "-c", GRID, str(recipe), f"trainer.steps={target}", *steps],
+                           capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert [torch.load(tmp_path / "runs" / f"tiny-seed{k}" / "checkpoint.pt", weights_only=True)["step"]
+            for k in range(3)] == [target] * 3
+    logged = [int(line.split(",")[0]) for line in (runs[0] / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
+    assert logged == sorted({*range(10, target + 1, 10), target})
+
+
+# --- a full disk -----------------------------------------------------------------------------------
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real 2 MB filesystem (tmpfs), unmounted afterwards."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)], capture_output=True, text=True)
+    if done.returncode:
+        pytest.skip(f"mount -t tmpfs is not permitted here: {done.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def fill(disk: Path, leave: int) -> Path:
+    """Fills ``disk`` with one file until writing fails, then frees ``leave`` bytes of it."""
+    filler = disk / "filler"
+    with open(filler, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError:
+            pass
+    os.truncate(filler, max(0, filler.stat().st_size - leave))
+    return filler
+
+
+@pytest.mark.parametrize("leave,victim", [(64 * 1024, "checkpoint.pt"), (0, "recipe.yaml")])
+def test_a_full_disk_is_one_line_naming_the_file_and_every_file_keeps_its_last_whole_version(
+        tmp_path, dataset, small_disk, leave, victim):
+    """No room for the next checkpoint (or for anything): one line naming the file; the partial temporary
+    file is gone, the last checkpoint is intact, every logged row is whole; with room again the run resumes."""
+    recipe = make_recipe(tmp_path, dataset)
+    argv = ["train", "--no-progress", str(recipe), f"out={small_disk}", "trainer.checkpoint_every=100"]
+    run_dir = small_disk / "tiny-seed0"
+    assert main([*argv, "trainer.steps=100"]) == 0
+    before = (run_dir / "checkpoint.pt").read_bytes()
+    filler = fill(small_disk, leave)
+    proc = spawn(*argv, "trainer.steps=300", "resume=true")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err
+    assert err == (f"rmrl train: error: cannot write {run_dir / victim}: No space left on device; the run stopped, "
+                   "its checkpoint of step 100 is kept (continue with resume=true)\n")
+    assert (run_dir / "checkpoint.pt").read_bytes() == before
+    assert not [p for p in run_dir.rglob("*") if p.name.endswith(".tmp")]
+    for table in [run_dir / "eval.csv", *run_dir.rglob("*.csv")]:
+        assert table.read_bytes().endswith(b"\n"), table
+    filler.unlink()
+    assert main([*argv, "trainer.steps=300", "resume=true"]) == 0
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 300
 
 
 def test_an_eval_env_of_another_size_is_a_one_line_error_and_the_run_can_start_again(tmp_path, dataset, capsys):

@@ -190,6 +190,76 @@ def test_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_
         torch.testing.assert_close(value, b["loss"][key], rtol=0, atol=0, msg=key)
 
 
+def _children(pid: int) -> list[int]:
+    """The live processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            fields = dict(line.split(":", 1) for line in (proc / "status").read_text().splitlines() if ":" in line)
+        except (OSError, ValueError):
+            continue
+        if fields.get("PPid", "").strip() == str(pid) and not fields.get("State", "").strip().startswith("Z"):
+            found.append(int(proc.name))
+    return found
+
+
+def _alive(pids: list[int], wait: float = 15) -> list[int]:
+    """Those of ``pids`` still running after up to ``wait`` seconds (a zombie counts as gone)."""
+    end = time.time() + wait
+    while True:
+        alive = [p for p in pids if Path(f"/proc/{p}").exists()
+                 and not (Path(f"/proc/{p}/stat").read_text().split(") ")[-1].startswith("Z"))]
+        if not alive or time.time() > end:
+            return alive
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("jobs,signum", [(2, signal.SIGTERM), (1, signal.SIGTERM), (2, signal.SIGINT)])
+def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_the_rerun_resumes(
+        tmp_path, dataset, jobs, signum):
+    """What ``timeout``, Kubernetes and batch systems send: every running job (a loky worker with
+    --jobs 2; the sweep's own process with --jobs 1) checkpoints, no further job starts, the parent
+    waits for them and exits 128+signal naming each checkpoint; the same sweep, run again, resumes."""
+    path = tiny(tmp_path, dataset)
+    out = tmp_path / "sweep"
+    argv = [sys.executable, "-m", "rm_torchrl.cli.main", "train", "-m", "--jobs", str(jobs), str(path), "seed=0,1,2",
+            f"out={out}", "trainer.log_every=10", "trainer.checkpoint_every=1000000"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([*argv, "trainer.steps=1000000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    running = [out / f"tiny-seed{k}" for k in range(jobs)]
+    try:
+        end = time.time() + 180
+        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in running):  # every job trains
+            assert proc.poll() is None and time.time() < end, proc.communicate()
+            time.sleep(0.05)
+        workers = _children(proc.pid)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signum, err
+    steps = [steps_of(r) for r in running]
+    assert all(0 < s < 1000000 for s in steps), steps
+    saved = ", ".join(f"{r} at step {s} of 1000000" for r, s in zip(running, steps))
+    name = signal.Signals(signum).name
+    assert (f"rmrl train: {name}: stopped; checkpoints: {saved}; {3 - jobs} not started; "
+            "run the same command again to resume them") in err, err
+    assert f"{out / 'tiny-seed2'}: not started, the sweep was stopped" in err
+    assert not (out / "tiny-seed2" / "checkpoint.pt").exists() and "Traceback" not in err
+    assert _alive(workers) == []  # no job trains on after its parent
+    if signum == signal.SIGINT:
+        return  # the same forwarding as SIGTERM's: the rerun is tested once per launcher mode
+    target = max(steps) + 20
+    again = subprocess.run([*argv, f"trainer.steps={target}"], capture_output=True, text=True, env=env, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert all(f"{r}: resuming" in again.stderr for r in running), again.stderr
+    assert f"{out / 'tiny-seed2'}: starting" in again.stderr
+    assert [steps_of(out / f"tiny-seed{k}") for k in range(3)] == [target] * 3
+    logged = [int(line.split(",")[0]) for line in (running[0] / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
+    assert logged == sorted({*range(10, target + 1, 10), target})  # the stopped run's rows, then the resumed run's
+
+
 def _submitit_task(out: Path) -> int:
     """The pid of the running submitit task (``python -m submitit.core._submit FOLDER``) of a sweep in ``out``."""
     for proc in Path("/proc").iterdir():

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import csv
+import os
+import re
 import shutil
 from pathlib import Path
 
@@ -121,11 +123,39 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("name=a/b", "name must be a plain directory name"),
         ("trainer.threads=-1", "trainer.threads must be >= 0"),
         ("optim.lr_actor=nan", "optim.lr_actor must be a finite number"),
+        ("seed=-1", r"recipe: seed must be an integer in \[0, 2\*\*32-1\], got -1$"),
+        ("seed=99999999999999999999", r"seed must be an integer in \[0, 2\*\*32-1\], got 99999999999999999999$"),
+        ("seed=4294967296", r"seed must be an integer in \[0, 2\*\*32-1\], got 4294967296$"),
+        ("method.iql.actor_dropout=1.5", r"recipe: method.iql.actor_dropout must lie in \[0, 1\), got 1.5$"),
+        ("method.iql.actor_dropout=-0.5", r"method.iql.actor_dropout must lie in \[0, 1\), got -0.5$"),
+        ("method.iql.actor_dropout=1", r"method.iql.actor_dropout must lie in \[0, 1\)"),
+        ("method.iql.expectile=1", r"method.iql.expectile must lie in \(0, 1\), got 1.0$"),
+        ("method.bcq.lmbda=1.5", r"method.bcq.lmbda must lie in \[0, 1\], got 1.5$"),
+        ("method.bcq.phi=-0.1", r"method.bcq.phi must lie in \[0, 1\], got -0.1$"),
+        ("trainer.gamma=0", r"trainer.gamma must lie in \(0, 1\], got 0.0$"),
+        ("trainer.tau=1.5", r"trainer.tau must lie in \(0, 1\], got 1.5$"),
     ],
 )
 def test_recipe_validation(tmp_path, dataset, override, message):
     with pytest.raises(RMError, match=message):
         load_recipe(make_recipe(tmp_path, dataset), [override] if isinstance(override, str) else list(override))
+
+
+@pytest.mark.parametrize("override", ["seed=-1", "seed=99999999999999999999", "method.iql.actor_dropout=1.5",
+                                      "method.bcq.lmbda=2"])
+def test_out_of_range_values_are_one_line_errors_before_anything_is_written(tmp_path, dataset, override, capsys):
+    assert main(["train", str(make_recipe(tmp_path, dataset)), override, "trainer.steps=10", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rmrl train: error: recipe: ") and err.count("\n") == 1, err
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("seed", [0, 2**32 - 1])
+def test_the_ends_of_the_seed_range_train_and_evaluate(tmp_path, dataset, seed):
+    """numpy's legacy seeding is the narrowest of the generators a run seeds; gymnasium's reset takes both ends."""
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 3, every: 5, episodes: 1}\n")
+    run_dir = train(load_recipe(recipe, [f"seed={seed}", "trainer.steps=5"]), progress=False)
+    assert run_dir.name == f"tiny-seed{seed}" and [r["step"] for r in csv.DictReader((run_dir / "eval.csv").open())] == ["5"]
 
 
 def test_exponent_floats_are_floats(tmp_path, dataset):
@@ -179,6 +209,32 @@ def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_pat
     assert main(grid) == 2  # the job's own message (printed by its worker) names notes.txt
     assert "1 of 3 runs did not finish" in capfd.readouterr().err
     assert (runs / "tiny-seed2" / "notes.txt").read_text() == "mine"
+
+
+def test_a_resumed_runs_eval_csv_has_one_line_ending(tmp_path, dataset):
+    """Rows the resume keeps (rewritten) and rows it adds end alike, in ``\\n``; a ``\\r\\n`` row of an
+    older run is normalised when it is kept."""
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 3, every: 5, episodes: 1}\n")
+    run_dir = train(load_recipe(recipe, ["trainer.steps=10", "trainer.checkpoint_every=10"]), progress=False)
+    eval_csv = run_dir / "eval.csv"
+    eval_csv.write_bytes(eval_csv.read_bytes().replace(b"\n", b"\r\n"))  # as runs written before this fix
+    train(load_recipe(recipe, ["trainer.steps=20", "trainer.checkpoint_every=10", "resume=true"]), progress=False)
+    data = eval_csv.read_bytes()
+    assert b"\r" not in data
+    assert [r["step"] for r in csv.DictReader(eval_csv.open())] == ["5", "10", "15", "20"]
+    for scalars in (run_dir / "logs" / "scalars").glob("*.csv"):
+        assert b"\r" not in scalars.read_bytes(), scalars
+
+
+def test_a_row_cut_short_is_dropped_when_the_run_resumes(tmp_path, dataset):
+    """A write cut short (a full disk, a kill) leaves an unfinished last row; the resume drops it."""
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=40", "trainer.checkpoint_every=40"]), progress=False)
+    scalars = run_dir / "logs" / "scalars" / "loss_actor.csv"
+    with scalars.open("a") as f:
+        f.write("6")  # the start of the row of step 60
+    train(load_recipe(recipe, ["trainer.steps=60", "resume=true"]), progress=False)
+    assert [line.split(",")[0] for line in scalars.read_text().splitlines()] == ["20", "40", "60"]
 
 
 def test_online_evaluation_in_mujoco(tmp_path, dataset):
@@ -326,54 +382,69 @@ def test_failed_compile_trains_eagerly(tmp_path, dataset, monkeypatch, capsys):
     monkeypatch.setattr(torch, "compile", broken_compile)
     run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.compile=true", "trainer.steps=30"]),
                     progress=False)
-    assert "torch.compile failed (RuntimeError: no C++ compiler here)" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "compiling the update with torch.compile (first step" in err
+    assert "torch.compile failed (RuntimeError: no C++ compiler here)" in err and "compiled in" not in err
     assert len(read_scalar(run_dir, "loss_qvalue")) == 2  # steps 20 and 30 were trained and logged
 
 
-def test_multirun_threads_share_the_cores_unless_set(monkeypatch):
+def test_compilation_says_when_it_starts_and_how_long_it_took(tmp_path, dataset, monkeypatch, capsys):
+    """The first step of a compiled run is slow; it says so. Dynamo traces for real here, with its eager
+    backend (inductor's C++ build would take a minute): the messages are what is tested."""
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda model, **kw: compile_(model, backend="eager", **kw))
+    train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.compile=true", "trainer.steps=3"]), progress=False)
+    lines = capsys.readouterr().err.splitlines()
+    start = lines.index("compiling the update with torch.compile (first step; about a minute on CPU) ...")
+    assert re.fullmatch(r"compiled in \d+ s", lines[start + 1]), lines
+    train(load_recipe(make_recipe(tmp_path, dataset), ["name=eager", "trainer.steps=3"]), progress=False)
+    assert "compil" not in capsys.readouterr().err
+
+
+def test_run_many_threads_share_the_cores_unless_set(tmp_path, dataset, monkeypatch):
     from rm_torchrl.cli import train as train_cli
 
-    launched = []
-
-    class FakeProcess:
-        returncode = 0
-
-        def __init__(self, cmd, env=None):
-            launched.append((cmd, env))
-
-        def poll(self):
-            return 0
-
-    monkeypatch.setattr(train_cli.subprocess, "Popen", FakeProcess)
     monkeypatch.setattr(train_cli.os, "cpu_count", lambda: 4)
-    train_cli.run_many([["r.yaml", "seed=0"], ["r.yaml", "seed=1", "trainer.threads=1"]], jobs=2)
-    (first, first_env), (second, second_env) = launched
-    assert "trainer.threads=2" in first and first_env["OMP_NUM_THREADS"] == "2"
-    assert [a for a in second if a.startswith("trainer.threads=")] == ["trainer.threads=1"]  # the user's value wins
-    assert second_env["OMP_NUM_THREADS"] == "1"
+    recipe = str(make_recipe(tmp_path, dataset))
+    train_cli.run_many([[recipe, "seed=0", "trainer.steps=2", "trainer.threads=0"],
+                        [recipe, "seed=1", "trainer.steps=2", "trainer.threads=1"]], jobs=2)
+    threads = [load_recipe(tmp_path / "runs" / f"tiny-seed{k}" / "recipe.yaml").trainer.threads for k in (0, 1)]
+    assert threads == [0, 1]  # the runs' own values win
+    train_cli.run_many([[recipe, "seed=2", "trainer.steps=2"]], jobs=2)
+    assert load_recipe(tmp_path / "runs" / "tiny-seed2" / "recipe.yaml").trainer.threads == 2  # 4 cores, 2 jobs
 
 
-def test_run_many_starts_the_next_run_when_any_run_ends(monkeypatch):
-    """A long first run must not hold back the queue while its neighbour's core is free."""
+def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_rest(tmp_path, dataset, capfd):
+    """A long first run must not hold back the queue while its neighbour's core is free: the third run
+    starts and finishes while the first trains; then SIGTERM (a real one, to this process) reaches the
+    first run, which checkpoints, and run_many says so."""
+    import signal
+    import threading
+    import time
+
     from rm_torchrl.cli import train as train_cli
+    from rm_torchrl.train.trainer import RunInterrupted
 
-    events = []
+    recipe = str(make_recipe(tmp_path, dataset))
+    runs = tmp_path / "runs"
 
-    class FakeProcess:
-        def __init__(self, cmd, env=None):
-            self.seed, self.polls, self.returncode = cmd[cmd.index("train") + 1], 0, None
-            events.append(f"start {self.seed}")
+    def signal_when_the_third_is_done():
+        end = time.time() + 300
+        while not (runs / "tiny-seed2" / "checkpoint.pt").exists() and time.time() < end:
+            time.sleep(0.1)
+        os.kill(os.getpid(), signal.SIGTERM)
 
-        def poll(self):
-            self.polls += 1
-            if self.seed == "a" and self.polls < 3:  # the long one
-                return None
-            if self.returncode is None:
-                events.append(f"end {self.seed}")
-                self.returncode = 0
-            return 0
-
-    monkeypatch.setattr(train_cli.subprocess, "Popen", FakeProcess)
-    monkeypatch.setattr(train_cli.time, "sleep", lambda s: None)
-    train_cli.run_many([["a"], ["b"], ["c"]], jobs=2)
-    assert events.index("start c") < events.index("end a"), events
+    killer = threading.Thread(target=signal_when_the_third_is_done, daemon=True)
+    killer.start()
+    with pytest.raises(RunInterrupted) as stopped:
+        train_cli.run_many([[recipe, "seed=0", "trainer.steps=1000000", "trainer.log_every=10"],
+                            [recipe, "seed=1", "trainer.steps=5"], [recipe, "seed=2", "trainer.steps=5"]], jobs=2)
+    killer.join()
+    step = torch.load(runs / "tiny-seed0" / "checkpoint.pt", weights_only=True)["step"]
+    assert 0 < step < 1000000
+    assert stopped.value.signum == signal.SIGTERM
+    assert stopped.value.message == (f"SIGTERM: stopped; checkpoints: {runs / 'tiny-seed0'} at step {step} of 1000000; "
+                                     "2 of 3 runs finished; continue them with resume=true")
+    out = capfd.readouterr().err
+    assert f"[tiny-seed0] rmrl train: SIGTERM: stopped after step {step} of 1000000; checkpoint written" in out
+    assert "[tiny-seed2] finished 5 steps:" in out

@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 0
     except KeyboardInterrupt as err:
-        signum = getattr(err, "signum", None)  # the trainer's RunInterrupted: a checkpoint was written
+        signum = getattr(err, "signum", None)  # RunInterrupted (a run, a sweep, run_many): says what was saved
         message = getattr(err, "message", None) or "interrupted; nothing was written"
         print(f"rmrl {args.command}: {message}", file=sys.stderr)
         return 128 + (signum or 2)

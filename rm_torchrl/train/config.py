@@ -35,6 +35,23 @@ CHOICES = {
     "logger.backend": ("csv", "tensorboard", "wandb"),
 }
 
+#: Probability-like entries (rates, fractions, expectiles) and the interval each must lie in:
+#: ``(`` and ``)`` leave the end out, ``[`` and ``]`` take it in. ``data.alpha`` has its own check.
+INTERVALS = {
+    "trainer.gamma": "(0, 1]",
+    "trainer.tau": "(0, 1]",
+    "method.iql.expectile": "(0, 1)",
+    "method.iql.actor_dropout": "[0, 1)",  # a dropout of 1 zeroes every hidden unit
+    "method.bcq.lmbda": "[0, 1]",
+    "method.bcq.phi": "[0, 1]",  # a fraction of the action range
+}
+#: Seeds every generator a run seeds accepts: numpy's legacy ``RandomState`` is the narrowest (torch
+#: takes up to 2**64-1, gymnasium any int >= 0, none of them a negative one).
+SEED_MAX = 2**32 - 1
+#: Seconds within which a second SIGINT/SIGTERM to a run or a sweep counts as the first one again, not
+#: as the request to stop at once (the trainer's ``_StopOnSignal``, the sweeps' forwarding).
+SIGNAL_REPEAT = 1.0
+
 
 @dataclass
 class DataConfig:

@@ -28,7 +28,7 @@ from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
 from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
-from rm_torchrl.train.config import CHOICES, DEVICES, Recipe
+from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, SEED_MAX, Recipe
 
 #: The package's recipes folder (the config root of ``rmrl train dataset=... method=...``).
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
@@ -183,11 +183,21 @@ def _lookup(recipe: Recipe, dotted: str):
     return node
 
 
+def _inside(value: float, interval: str) -> bool:
+    """Whether ``value`` lies in ``interval``, written as in :data:`~rm_torchrl.train.config.INTERVALS`."""
+    low, high = (float(end) for end in interval[1:-1].split(","))
+    above = low < value if interval[0] == "(" else low <= value
+    below = value < high if interval[-1] == ")" else value <= high
+    return above and below
+
+
 def validate(recipe: Recipe) -> None:
     """Checks across fields that the types alone do not catch."""
     for key, value in _floats(recipe):
         if not math.isfinite(value):
             raise RMError(f"recipe: {key} must be a finite number, got {value!r}")
+    if isinstance(recipe.seed, bool) or not 0 <= recipe.seed <= SEED_MAX:
+        raise RMError(f"recipe: seed must be an integer in [0, 2**32-1], got {recipe.seed}")
     for key, choices in CHOICES.items():
         if _lookup(recipe, key) not in choices:
             raise RMError(f"recipe: {key} must be one of {list(choices)}, got {_lookup(recipe, key)!r}")
@@ -214,10 +224,9 @@ def validate(recipe: Recipe) -> None:
     for key, value in positive.items():
         if value <= 0:
             raise RMError(f"recipe: {key} must be positive, got {value}")
-    if not 0 < recipe.trainer.gamma <= 1 or not 0 < recipe.trainer.tau <= 1:
-        raise RMError("recipe: trainer.gamma and trainer.tau must lie in (0, 1]")
-    if not 0 < recipe.method.iql.expectile < 1:
-        raise RMError(f"recipe: method.iql.expectile must lie in (0, 1), got {recipe.method.iql.expectile}")
+    for key, interval in INTERVALS.items():
+        if not _inside(_lookup(recipe, key), interval):
+            raise RMError(f"recipe: {key} must lie in {interval}, got {_lookup(recipe, key)}")
     for key, hidden in (("network.hidden", recipe.network.hidden), ("method.bcq.vae_hidden", recipe.method.bcq.vae_hidden)):
         if not hidden or not all(h > 0 for h in hidden):
             raise RMError(f"recipe: {key} must be a list of positive ints, got {hidden}")

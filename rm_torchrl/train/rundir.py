@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import io
 import json
 import os
 import shutil
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.run_format import CHECKPOINT, CHECKPOINT_TMP, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES
+from rm_torchrl.run_format import CHECKPOINT, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES, temp_name
 
 #: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
 #: logging, threads, compile may change between a run and its continuation).
@@ -51,8 +53,11 @@ class RunLock:
             if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
                 raise RMError(f"run directory {self.path.parent} is in use by process {holder}") from None
             raise
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
+        except OSError:  # a full disk: the lock holds all the same, only others' messages lack the pid
+            pass
         self.fd = fd
         return self
 
@@ -62,11 +67,65 @@ class RunLock:
             self.fd = None
 
 
+class WriteFailed(RMError):
+    """A run's file could not be written (a full disk, a read-only or vanished directory): one line
+    naming the path. Whatever the file held before is still there, and nothing partial is left."""
+
+    def __init__(self, path: Path, err: OSError):
+        super().__init__(f"cannot write {path}: {err.strerror or err}")
+        self.path = Path(path)
+
+
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """``data`` into ``path`` through its temporary file (:func:`~rm_torchrl.run_format.temp_name`),
+    renamed over ``path`` when complete; when writing fails the temporary file is removed, so a full
+    disk keeps the previous version and gets its space back."""
+    path = Path(path)
+    tmp = path.with_name(temp_name(path.name))
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise WriteFailed(path, err) from None
+
+
+@contextmanager
+def appending(path: Path):
+    """A text file opened to append rows, all or nothing: when writing fails, the file is cut back
+    to what it held before (cutting needs no space), so a full disk never leaves half a row."""
+    path = Path(path)
+    size = path.stat().st_size if path.exists() else 0
+    try:
+        with open(path, "a", newline="") as f:
+            yield f
+    except OSError as err:
+        try:
+            os.truncate(path, size)
+        except OSError:
+            pass
+        raise WriteFailed(path, err) from None
+
+
+def cut_partial_line(path: Path) -> None:
+    """Drops an unfinished last line (a write cut short by a full disk) in place, needing no space."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+        if data and not data.endswith(b"\n"):
+            os.truncate(path, data.rfind(b"\n") + 1)
+    except OSError:
+        pass
+
+
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Plain tensors and containers only (loadable with ``weights_only=True``), written atomically."""
-    tmp = path.with_name(CHECKPOINT_TMP)
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    """Plain tensors and containers only (loadable with ``weights_only=True``), written atomically:
+    serialised in memory first, so that a full disk is an ``OSError`` (:class:`WriteFailed`) and not
+    a torch zip-writer error, and the previous checkpoint stays whole."""
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    write_atomic(path, buffer.getbuffer())
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -136,9 +195,7 @@ def open_run(recipe) -> dict | None:
 
 def mark_failed(run_dir: Path, step: int, what: str, message: str) -> None:
     """``failed.json``: the run stopped on an error; ``rmrl report`` leaves it out of every table."""
-    tmp = run_dir / f".{FAILED}.tmp"
-    tmp.write_text(json.dumps({"step": step, "what": what, "message": message}, indent=1) + "\n")
-    os.replace(tmp, run_dir / FAILED)
+    write_atomic(run_dir / FAILED, json.dumps({"step": step, "what": what, "message": message}, indent=1) + "\n")
 
 
 def run_status(recipe) -> str:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import random
 import signal
 import sys
@@ -25,12 +24,13 @@ from tqdm import tqdm
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.config import SIGNAL_REPEAT, Recipe
 from rm_torchrl.train.data import prepare_data
 from rm_torchrl.train.losses import compile_method
 from rm_torchrl.train.methods import METHODS, build_method
 from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, LOGS_DIR, RECIPE_FILE, REFINE_FILE
-from rm_torchrl.train.rundir import RunLock, load_checkpoint, mark_failed, open_run, save_checkpoint
+from rm_torchrl.train.rundir import (RunLock, WriteFailed, appending, cut_partial_line, load_checkpoint, mark_failed,
+                                    open_run, save_checkpoint, write_atomic)
 
 
 
@@ -46,18 +46,26 @@ def _make_logger(recipe: Recipe, run_dir: Path):
 
 
 def _trim_history(run_dir: Path, step: int) -> None:
-    """Drops logged rows past ``step`` so a resumed run does not log them twice."""
+    """Drops logged rows past ``step`` so a resumed run does not log them twice, and any row cut short
+    (a full disk, a kill during a write); every row ends in ``\\n``, as new ones are written."""
     files = [run_dir / EVAL_FILE, *sorted((run_dir / LOGS_DIR / "scalars").glob("*.csv"))]
     for path in files:
         if not path.is_file():
             continue
         lines = path.read_text().splitlines(keepends=True)
         head = lines[:1] if path.name == EVAL_FILE else []
-        body = lines[len(head):]
-        kept = [line for line in body if line.strip() and int(float(line.split(",")[0])) <= step]
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text("".join(head + kept))
-        os.replace(tmp, path)
+        kept = [row for row in lines[len(head):] if (at := _row_step(row)) is not None and at <= step]
+        write_atomic(path, "".join(line.rstrip("\r\n") + "\n" for line in head + kept))
+
+
+def _row_step(row: str) -> int | None:
+    """The step of a logged row, or None for a blank or unfinished one."""
+    if not row.endswith("\n") or not row.strip():
+        return None
+    try:
+        return int(float(row.split(",")[0]))
+    except ValueError:
+        return None
 
 
 class NonFinite(RuntimeError):
@@ -95,7 +103,8 @@ def gradient_step(method, terms, batch):
 
 
 class RunInterrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM stopped the run between two updates, after its checkpoint was written."""
+    """SIGINT or SIGTERM stopped the run (or a sweep of runs) between two updates, after its checkpoint
+    was written; ``message`` says what was saved."""
 
     def __init__(self, signum: int, message: str):
         super().__init__(message)
@@ -106,20 +115,25 @@ class _StopOnSignal:
     """SIGINT, SIGTERM (what SLURM and Kubernetes send) and SIGUSR2 (submitit's and SLURM's
     ``--signal`` warning before preemption or the time limit) ask the loop to stop at the next
     update boundary, so the checkpoint holds a whole update and the RNG state right after it; a
-    second signal interrupts at once (the last periodic checkpoint stays). After the checkpoint,
-    SIGUSR2 goes on to the handler that was there before: submitit's, which requeues the job, whose
-    next start resumes from that checkpoint."""
+    second signal, :data:`SIGNAL_REPEAT` seconds or more after the first, interrupts at once (the last
+    periodic checkpoint stays). One sooner counts as the same request: a sweep's parent forwards the
+    signal its jobs may have had already (``timeout`` and Ctrl-C signal the whole process group, and
+    ``timeout`` its command once more).
+    After the checkpoint, SIGUSR2 goes on to the handler that was there before: submitit's, which
+    requeues the job, whose next start resumes from that checkpoint."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2)
 
     def __init__(self):
         self.signum = None
+        self._at = 0.0
         self._previous = {}
 
     def _handle(self, signum, frame):
-        if self.signum is not None:
+        if self.signum is None:
+            self.signum, self._at = signum, time.monotonic()
+        elif time.monotonic() - self._at >= SIGNAL_REPEAT:
             raise KeyboardInterrupt
-        self.signum = signum
 
     def __enter__(self) -> "_StopOnSignal":
         if threading.current_thread() is threading.main_thread():
@@ -140,11 +154,14 @@ class _StopOnSignal:
 
 
 def _first_step(method, terms, batch):
-    """The first update, in which ``torch.compile`` compiles: if that fails, say so and train eagerly."""
+    """The first update, in which ``torch.compile`` compiles (saying so: it takes a while before the
+    first step shows); if compiling fails, say so and train eagerly."""
     if method.compiled is None:
         return gradient_step(method, terms, batch)
+    tqdm.write("compiling the update with torch.compile (first step; about a minute on CPU) ...", file=sys.stderr)
+    started = time.perf_counter()
     try:
-        return gradient_step(method, terms, batch)
+        losses = gradient_step(method, terms, batch)
     except NonFinite:
         raise
     except Exception as err:  # e.g. no C++ compiler: eager training is slower, not different; real errors recur
@@ -152,6 +169,8 @@ def _first_step(method, terms, batch):
         tqdm.write(f"warning: torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
                    "training without it (set trainer.compile=false to skip the attempt)", file=sys.stderr)
         return gradient_step(method, terms, batch)
+    tqdm.write(f"compiled in {time.perf_counter() - started:.0f} s", file=sys.stderr)
+    return losses
 
 
 def resolve_device(name: str, key: str = "trainer.device") -> torch.device:
@@ -179,7 +198,17 @@ def train(recipe: Recipe, progress: bool = True) -> Path:
     run_dir = recipe.run_dir
     with RunLock(run_dir):
         state = open_run(recipe)
-        return _train(recipe, run_dir, state, progress)
+        try:
+            return _train(recipe, run_dir, state, progress)
+        except WriteFailed as err:  # a full disk: every file keeps its last whole version
+            raise RMError(f"{err}; the run stopped, {_kept(run_dir / CHECKPOINT)}") from None
+
+
+def _kept(ckpt_path: Path, hint: str = " (continue with resume=true)") -> str:
+    """What a stopped run keeps to resume from."""
+    if not ckpt_path.is_file():
+        return "no checkpoint was written"
+    return f"its checkpoint of step {load_checkpoint(ckpt_path)['step']} is kept{hint}"
 
 
 def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) -> Path:
@@ -206,9 +235,9 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         from rm_torchrl.train.evaluate import Evaluator
 
         evaluator = Evaluator(recipe, data, method.policy, device)
-    (run_dir / RECIPE_FILE).write_text(yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+    write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(recipe.to_dict(), sort_keys=False))
     if data.report is not None:
-        (run_dir / REFINE_FILE).write_text(json.dumps(data.report, indent=2) + "\n")
+        write_atomic(run_dir / REFINE_FILE, json.dumps(data.report, indent=2) + "\n")
 
     # --- resume -----------------------------------------------------------------------------
     start, elapsed_before = 0, 0.0
@@ -223,10 +252,26 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         start = state["step"]
         elapsed_before = float(state.get("elapsed_seconds", 0.0))
         _trim_history(run_dir, start)
-    logger = _make_logger(recipe, run_dir)
+    try:
+        logger = _make_logger(recipe, run_dir)
+    except OSError as err:  # its folders on a full disk
+        raise WriteFailed(run_dir / LOGS_DIR, err) from None
     eval_csv = run_dir / EVAL_FILE
     if not eval_csv.exists():
-        eval_csv.write_text(",".join(EVAL_COLUMNS) + "\n")
+        write_atomic(eval_csv, ",".join(EVAL_COLUMNS) + "\n")
+
+    def log_scalar(key: str, value: float, step: int) -> None:
+        try:
+            logger.log_scalar(key, value, step=step)
+        except OSError as err:  # a full disk: close the logger's files now (no retried flush at exit), cut their last row
+            for f in list(getattr(logger.experiment, "files", {}).values()):
+                try:
+                    f.close()
+                except OSError:
+                    pass
+            for path in (run_dir / LOGS_DIR).rglob("*.csv"):
+                cut_partial_line(path)
+            raise WriteFailed(run_dir / LOGS_DIR, err) from None
 
     def checkpoint(step: int) -> None:
         save_checkpoint(ckpt_path, {
@@ -244,10 +289,11 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
 
     def evaluate(step: int) -> dict:
         result = evaluator.run()
-        with eval_csv.open("a", newline="") as f:
-            csv.writer(f).writerow([step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:-1]), result["reward"]])
+        with appending(eval_csv) as f:  # "\n" rows, as _trim_history rewrites them
+            csv.writer(f, lineterminator="\n").writerow(
+                [step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:-1]), result["reward"]])
         for key in EVAL_COLUMNS[1:-1]:
-            logger.log_scalar(f"eval_{key}", result[key], step=step)
+            log_scalar(f"eval_{key}", result[key], step=step)
         return result
 
     # --- the loop ---------------------------------------------------------------------------
@@ -268,20 +314,19 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
                 losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
             except NonFinite as err:
                 bar.close()
-                kept = (f"its checkpoint of step {load_checkpoint(ckpt_path)['step']} is kept" if ckpt_path.is_file()
-                        else "no checkpoint was written")
-                message = f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; {kept}"
+                message = (f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; "
+                           f"{_kept(ckpt_path, hint='')}")
                 mark_failed(run_dir, step, str(err), message)
                 raise RMError(message) from None
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
                 for key, entry in losses.items():
                     if entry.numel() == 1:  # the loss terms and the loss's scalar diagnostics
                         value = float(entry.detach())
-                        logger.log_scalar(key, value, step=step)
+                        log_scalar(key, value, step=step)
                         if key in terms:
                             shown[key.removeprefix("loss_")] = f"{value:.3g}"
                 train_seconds = time.perf_counter() - started - eval_seconds
-                logger.log_scalar("updates_per_second", (step - start) / train_seconds, step=step)
+                log_scalar("updates_per_second", (step - start) / train_seconds, step=step)
             if evaluator is not None and (step % recipe.eval.every == 0 or step == recipe.trainer.steps):
                 eval_started = time.perf_counter()
                 result = evaluate(step)
