@@ -225,4 +225,9 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except KeyboardInterrupt as err:  # a signal to run_grid: its runs checkpointed and say where
+        from rm_torchrl.cli.main import interrupted
+
+        raise SystemExit(interrupted(err, Path(__file__).name))

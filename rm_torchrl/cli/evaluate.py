@@ -34,7 +34,8 @@ def figures(result: dict) -> str:
 
 def run(args) -> int:
     from rm_torchrl.errors import RMError
-    from rm_torchrl.train.policy import check_seed, load_policy
+    from rm_torchrl.train.config import check_seed
+    from rm_torchrl.train.policy import load_policy
     from rm_torchrl.train.video import check_video_path
 
     if args.episodes is not None and args.episodes < 1:

@@ -143,10 +143,15 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 0
     except KeyboardInterrupt as err:
-        signum = getattr(err, "signum", None)  # RunInterrupted (a run, a sweep, run_many): says what was saved
-        message = getattr(err, "message", None) or "interrupted; nothing was written"
-        print(f"rmrl {args.command}: {message}", file=sys.stderr)
-        return 128 + (signum or 2)
+        return interrupted(err, f"rmrl {args.command}")
+
+
+def interrupted(err: KeyboardInterrupt, prog: str) -> int:
+    """Says what an interrupted command saved and returns its exit status (130 for SIGINT, 143 for SIGTERM)."""
+    signum = getattr(err, "signum", None)  # RunInterrupted (a run, a sweep, run_many): says what was saved
+    message = getattr(err, "message", None) or "interrupted; nothing was written"
+    print(f"{prog}: {message}", file=sys.stderr)
+    return 128 + (signum or 2)
 
 
 if __name__ == "__main__":

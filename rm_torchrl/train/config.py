@@ -15,6 +15,8 @@ from typing import Any, Dict, List
 
 from omegaconf import OmegaConf
 
+from rm_torchrl.errors import RMError
+
 #: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
 #: on the refined data with the RM state as policy input; the others are the paper's baselines.
 METHOD_SECTIONS = {"ours": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
@@ -48,6 +50,13 @@ INTERVALS = {
 #: Seeds every generator a run seeds accepts: numpy's legacy ``RandomState`` is the narrowest (torch
 #: takes up to 2**64-1, gymnasium any int >= 0, none of them a negative one).
 SEED_MAX = 2**32 - 1
+
+
+def check_seed(seed, what: str = "seed") -> int:
+    """``seed`` if every seeded generator takes it (an integer in [0, 2**32-1]), else a one-line RMError."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX:
+        raise RMError(f"{what} must be an integer in [0, 2**32-1], got {seed!r}")
+    return seed
 #: Seconds within which a second SIGINT/SIGTERM to a run or a sweep counts as the first one again, not
 #: as the request to stop at once (the trainer's ``_StopOnSignal``, the sweeps' forwarding).
 SIGNAL_REPEAT = 1.0

@@ -25,7 +25,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
-from rm_torchrl.train.config import Recipe
+from rm_torchrl.train.config import Recipe, check_seed
 from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
 from rm_torchrl.train.methods import build_method
@@ -33,8 +33,6 @@ from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint
 from rm_torchrl.train.trainer import resolve_device
 
-#: the largest environment seed: gymnasium seeds numpy's generators, which take 32-bit seeds here
-SEED_MAX = 2 ** 32 - 1
 
 
 @dataclass
@@ -86,13 +84,6 @@ class LoadedPolicy:
             if own:
                 env.close()
         return write_video(frames, path, fps)
-
-
-def check_seed(seed, what: str = "seed") -> int:
-    """``seed`` if gymnasium and numpy take it (an integer in 0..2**32-1), else a one-line RMError."""
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX:
-        raise RMError(f"{what} must be an integer in 0..{SEED_MAX} (2**32-1), got {seed!r}")
-    return seed
 
 
 def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedPolicy:

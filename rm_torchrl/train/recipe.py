@@ -28,7 +28,7 @@ from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
 from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
-from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, SEED_MAX, Recipe
+from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, Recipe, check_seed
 
 #: The package's recipes folder (the config root of ``rmrl train dataset=... method=...``).
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
@@ -196,8 +196,7 @@ def validate(recipe: Recipe) -> None:
     for key, value in _floats(recipe):
         if not math.isfinite(value):
             raise RMError(f"recipe: {key} must be a finite number, got {value!r}")
-    if isinstance(recipe.seed, bool) or not 0 <= recipe.seed <= SEED_MAX:
-        raise RMError(f"recipe: seed must be an integer in [0, 2**32-1], got {recipe.seed}")
+    check_seed(recipe.seed, "recipe: seed")
     for key, choices in CHOICES.items():
         if _lookup(recipe, key) not in choices:
             raise RMError(f"recipe: {key} must be one of {list(choices)}, got {_lookup(recipe, key)!r}")
