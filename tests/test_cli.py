@@ -342,7 +342,7 @@ def test_demo_keeps_the_users_runs(tmp_path):
     demo = (project / "report" / "demo.md").read_text()
     assert "| door-human-v0 |" in results and "Ours" in results and "IQL" in results
     assert "± 0.0" not in results and "± 0.0" not in demo
-    assert "| Ours |" in demo and "| IQL |" in demo and "20 steps, seed 0, 1 episodes" in demo
+    assert "| Ours |" in demo and "| IQL |" in demo and "20 steps, seed 0, 1 episode |" in demo
     for method in ("ours", "iql"):
         recipe = yaml.safe_load((runs / f"demo-{method}-seed0" / "recipe.yaml").read_text())
         composed = load_recipe(None, ["dataset=door-human-v0", f"method={method}"]).to_dict()
