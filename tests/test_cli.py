@@ -364,6 +364,17 @@ def test_demo_keeps_the_users_runs(tmp_path):
     assert _files(runs) == written
 
 
+@pytest.mark.parametrize("name", ["results.md", "thesis.tex"])
+def test_demo_refuses_a_report_folder_it_did_not_write(capsys, tmp_path, name):
+    """A user's own ``DIR/report`` (even one holding a results.md of ``rmrl report``) is refused before any training."""
+    (tmp_path / "report").mkdir()
+    (tmp_path / "report" / name).write_text("the user's\n")
+    message = assert_error(capsys, "demo", ["demo", "--out", tmp_path, "--steps", 5], f"{tmp_path / 'report'} holds files")
+    assert name in message
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+    assert (tmp_path / "report" / name).read_text() == "the user's\n"
+
+
 def test_version(capsys):
     from importlib.metadata import version
 

@@ -26,11 +26,12 @@ from rm_torchrl.errors import RMError
 METHODS = ("ours", "iql")
 #: The default budget, measured (README, Quick start): at 2,000 steps every seed of ours scored above
 #: the same seed of IQL (20 episodes per evaluation); at 3,000 and 4,000 steps IQL's seed 0 overtook
-#: ours. An evaluation episode costs ~0.3 s, so 20 of them keep the final numbers from being a coin toss.
+#: ours. 20 episodes keep the final numbers from being a coin toss; an episode costs 0.3-0.8 s, so a
+#: run evaluates twice (halfway and at the end) to stay within 5 minutes on 2 cores.
 STEPS = 2000
 SEEDS = 3
 EPISODES = 20
-EVALUATIONS = 4  # per run: every steps // 4, so the report has learning curves
+EVALUATIONS = 2  # per run: every steps // 2
 PREFIX = "demo"
 RESULTS = "demo.md"
 
@@ -69,6 +70,22 @@ def _check_earlier(recipes) -> None:
         if changes:
             raise RMError(f"{recipe.run_dir} holds an earlier run that differs from this demo ({'; '.join(changes)}); "
                           "give another --out, or move that run away")
+
+
+def _check_report_dir(report: Path) -> None:
+    """``OUT/report`` is the demo's to write only when empty or an earlier demo's report (it has ``demo.md``
+    and nothing but what the report writes): a user's own ``report/`` is refused before any training."""
+    from rm_torchrl.cli.report import CURVES, RESULTS as TABLES, SIZES
+
+    if not report.exists():
+        return
+    if not report.is_dir():
+        raise RMError(f"{report} exists and is not a directory; give another --out")
+    entries = sorted(p.name for p in report.iterdir())
+    foreign = [e for e in entries if e not in (TABLES, CURVES, SIZES, RESULTS)]
+    if foreign or (entries and RESULTS not in entries):
+        raise RMError(f"{report} holds files an earlier demo did not write ({', '.join(foreign or entries)}); "
+                      "give another --out, or move them away")
 
 
 def _mean_std(values: np.ndarray, decimals: int) -> str:
@@ -142,6 +159,7 @@ def run(args) -> int:
             for m in METHODS]
     recipes = [load_recipe(path, overrides) for path, overrides in runs]  # every one checked before any starts
     _check_earlier(recipes)
+    _check_report_dir(Path(args.out) / "report")
     source = recipes[0].data.source
     label = "door-human-v0 (D4RL's file shipped in the package)" if Path(source) == DOOR_HUMAN_V0 else source
     print(f"data: {source}\n{len(runs)} runs ({', '.join(METHODS)} x {args.seeds} seeds), {args.steps:,} steps "
