@@ -2,7 +2,7 @@
 
 Most commands run on a tiny door-like D4RL HDF5 file built here (6 episodes of 40 steps in which the
 palm reaches the handle and the hinge then opens past 0.2, 1.0 and 1.35 rad), so they need no
-download; the paper's numbers are checked on the real door-human-v0 file when it is present.
+download; the paper's numbers are checked on the real door-human-v0 file shipped in the package.
 """
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 Every test points ``MINARI_DATASETS_PATH`` at ``tmp_path`` so nothing touches the user's cache. The
 tiny files encode (episode, step) in the observation (``[1000 * episode + t, t, episode]``: a jump of
 ~1000 at every real boundary, so ``auto`` sees consistent flags) and the row in actions and rewards,
-so a shifted or reordered round trip cannot pass. The real D4RL files are used when present.
+so a shifted or reordered round trip cannot pass. The real door-human-v0 shipped in the package is
+imported too, and kitchen-complete-v0 when ../shared holds it.
 """
 from __future__ import annotations
 
