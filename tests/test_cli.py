@@ -364,6 +364,20 @@ def test_demo_keeps_the_users_runs(tmp_path):
     assert _files(runs) == written
 
 
+def test_demo_on_another_file_names_it(tmp_path):
+    """``--dataset FILE``: the runs train on FILE, and the tables name the dataset after it, not door-human-v0."""
+    data = tmp_path / "my-door.hdf5"
+    shutil.copyfile(DOOR_HUMAN_V0, data)
+    proc = _demo(tmp_path, "--dataset", str(data), *[("d" if a == "." else a) for a in DEMO])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    recipe = yaml.safe_load((tmp_path / "d" / "runs" / "demo-iql-seed0" / "recipe.yaml").read_text())
+    assert recipe["data"]["source"] == str(data)
+    results = (tmp_path / "d" / "report" / "results.md").read_text()
+    demo = (tmp_path / "d" / "report" / "demo.md").read_text()
+    assert "| my-door |" in results and "door-human-v0" not in results
+    assert demo.startswith(f"# rmrl demo: ours vs IQL on {data}\n") and "door-human-v0" not in demo
+
+
 @pytest.mark.parametrize("name", ["results.md", "thesis.tex"])
 def test_demo_refuses_a_report_folder_it_did_not_write(capsys, tmp_path, name):
     """A user's own ``DIR/report`` (even one holding a results.md of ``rmrl report``) is refused before any training."""
