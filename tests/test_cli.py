@@ -2,7 +2,7 @@
 
 Most commands run on a tiny door-like D4RL HDF5 file built here (6 episodes of 40 steps in which the
 palm reaches the handle and the hinge then opens past 0.2, 1.0 and 1.35 rad), so they need no
-download; the paper's numbers are checked on the real door-human-v0 file when it is present.
+download; the paper's numbers are checked on the real door-human-v0 file shipped in the package.
 """
 from __future__ import annotations
 
@@ -17,15 +17,17 @@ import h5py
 import numpy as np
 import pytest
 import torch
+import yaml
 from tensordict import TensorDict
 
 from rm_torchrl.cli.main import main
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
+from rm_torchrl.train.recipe import load_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 D4RL = ROOT.parent / "shared" / "data" / "d4rl"
-DOOR = D4RL / "door-human-v0.hdf5"
+DOOR = DOOR_HUMAN_V0  # shipped in the package: these tests never skip
 KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
-needs_door = pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} not available")
 needs_kitchen = pytest.mark.skipif(not KITCHEN.is_file(), reason=f"{KITCHEN} not available")
 
 DOOR_EVENTS = ["reach_handle", "door_0.2", "door_1.0", "door_1.35"]
@@ -120,7 +122,6 @@ def check_door_human_output(out: Path):
     return report
 
 
-@needs_door
 def test_refine_door_human_reproduces_table2(capsys, tmp_path):
     out = tmp_path / "door-human"
     code, stdout, err = run(capsys, "refine", "--dataset", DOOR, "--events", "door", "--alpha", "0.5", "--out", out)
@@ -135,8 +136,9 @@ def test_refine_door_human_reproduces_table2(capsys, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["door-human"]  # no temporary leftovers
 
 
-@needs_door
-def test_refine_door_human_from_recipe(capsys, tmp_path):
+def test_refine_door_human_from_recipe(capsys, tmp_path, monkeypatch):
+    """The recipe finds the packaged file from any directory (here one without ../shared beside it)."""
+    monkeypatch.chdir(tmp_path)
     out = tmp_path / "recipe-out"
     code, stdout, err = run(capsys, "refine", "--config", ROOT / "recipes" / "refine" / "door-human.yaml", "--out", out)
     assert code == 0, err
@@ -296,6 +298,115 @@ def test_rm_graph_default_is_dot(capsys):
 def test_demo_refuses_a_bad_dataset(capsys, tmp_path):
     code, _, err = run(capsys, "demo", "--dataset", tmp_path / "missing.hdf5", "--steps", 5, "--out", tmp_path / "d")
     assert code == 2 and "does not exist" in err
+
+
+# --------------------------------------------------------------------------------------------
+# rmrl demo on the packaged door-human-v0, --version, train --help
+# --------------------------------------------------------------------------------------------
+
+#: The demo as in the README, at a test's budget: 20 steps, one seed, one evaluation episode, no compile.
+DEMO = ["--out", ".", "--steps", "20", "--seeds", "1", "--episodes", "1", "trainer.compile=false"]
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _demo(cwd: Path, *argv: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "demo", *argv], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_demo_keeps_the_users_runs(tmp_path):
+    """``rmrl demo --out .`` in a project folder with no ../shared beside it (issue 19, case 2): it trains
+    on the packaged file, composed as ``rmrl train dataset=door-human-v0 method=...`` does, and the
+    user's runs (``rmrl train``'s default ``runs/door-human-v0-iql-seed0``, a ``runs/door-x-seed0``)
+    are left byte for byte; run again, it skips its finished runs; a shorter one is refused, not replaced."""
+    project = tmp_path / "project"
+    runs = project / "runs"
+    shutil.copytree(ROOT / "benchmarks" / "results" / "table1" / "runs" / "door-human-v0-iql-seed0",
+                    runs / "door-human-v0-iql-seed0")
+    (runs / "door-x-seed0").mkdir()
+    (runs / "door-x-seed0" / "notes.txt").write_text("the user's notes\n")
+    users = _files(runs)
+
+    proc = _demo(project, *DEMO)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(p.name for p in runs.iterdir()) == ["demo-iql-seed0", "demo-ours-seed0", "door-human-v0-iql-seed0",
+                                                      "door-x-seed0"]
+    written = _files(runs)
+    assert {k: v for k, v in written.items() if not k.startswith("demo-")} == users
+    results = (project / "report" / "results.md").read_text()
+    demo = (project / "report" / "demo.md").read_text()
+    assert "| door-human-v0 |" in results and "Ours" in results and "IQL" in results
+    assert "± 0.0" not in results and "± 0.0" not in demo
+    assert "| Ours |" in demo and "| IQL |" in demo and "20 steps, seed 0, 1 episode |" in demo
+    for method in ("ours", "iql"):
+        recipe = yaml.safe_load((runs / f"demo-{method}-seed0" / "recipe.yaml").read_text())
+        composed = load_recipe(None, ["dataset=door-human-v0", f"method={method}"]).to_dict()
+        assert Path(recipe["data"]["source"]) == DOOR_HUMAN_V0
+        for section in ("data", "method", "network", "optim"):
+            assert recipe[section] == composed[section], section
+        assert recipe["trainer"] == {**composed["trainer"], "steps": 20, "threads": 1, "compile": False}
+
+    again = _demo(project, *DEMO)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "2 of 2 runs already finished: skipped" in again.stderr
+    assert _files(runs) == written
+
+    shorter = _demo(project, *[("10" if a == "20" else a) for a in DEMO])
+    assert shorter.returncode == 2, shorter.stderr[-3000:]
+    assert shorter.stderr.splitlines()[-1] == (
+        f"rmrl demo: error: {(runs / 'demo-ours-seed0').resolve()} holds an earlier run that differs from this demo "
+        "(trainer.steps: 20 -> 10); give another --out, or move that run away")
+    assert _files(runs) == written
+
+
+def test_demo_on_another_file_names_it(tmp_path):
+    """``--dataset FILE``: the runs train on FILE, and the tables name the dataset after it, not door-human-v0."""
+    data = tmp_path / "my-door.hdf5"
+    shutil.copyfile(DOOR_HUMAN_V0, data)
+    proc = _demo(tmp_path, "--dataset", str(data), *[("d" if a == "." else a) for a in DEMO])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    recipe = yaml.safe_load((tmp_path / "d" / "runs" / "demo-iql-seed0" / "recipe.yaml").read_text())
+    assert recipe["data"]["source"] == str(data)
+    results = (tmp_path / "d" / "report" / "results.md").read_text()
+    demo = (tmp_path / "d" / "report" / "demo.md").read_text()
+    assert "| my-door |" in results and "door-human-v0" not in results
+    assert demo.startswith(f"# rmrl demo: ours vs IQL on {data}\n") and "door-human-v0" not in demo
+
+
+@pytest.mark.parametrize("name", ["results.md", "thesis.tex"])
+def test_demo_refuses_a_report_folder_it_did_not_write(capsys, tmp_path, name):
+    """A user's own ``DIR/report`` (even one holding a results.md of ``rmrl report``) is refused before any training."""
+    (tmp_path / "report").mkdir()
+    (tmp_path / "report" / name).write_text("the user's\n")
+    message = assert_error(capsys, "demo", ["demo", "--out", tmp_path, "--steps", 5], f"{tmp_path / 'report'} holds files")
+    assert name in message
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+    assert (tmp_path / "report" / name).read_text() == "the user's\n"
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"rmrl {version('rm_torchrl')}\n"
+
+
+def test_train_help_lists_the_dataset_and_method_options(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    flat = " ".join(text.split())  # the lists are wrapped
+    for group in ("dataset", "method"):
+        names = sorted(p.stem for p in (ROOT / "recipes" / group).glob("*.yaml"))
+        assert len(names) >= 5 and f"{group}=NAME ({ROOT / 'recipes' / group}): {', '.join(names)}" in flat
 
 
 # --------------------------------------------------------------------------------------------

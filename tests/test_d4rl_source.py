@@ -16,10 +16,11 @@ import pytest
 import torch
 
 from rm_torchrl.data.d4rl import episode_end_flags, load_d4rl_hdf5
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
 
 D4RL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl"
-DOOR = D4RL / "door-human-v0.hdf5"
+DOOR = DOOR_HUMAN_V0  # shipped in the package
 KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
 
 DOOR_LENGTHS = [300] * 5 + [293, 284, 265, 265, 291, 247, 236, 271, 242, 277, 257, 260, 223, 257, 277, 288, 289,
@@ -416,7 +417,6 @@ def test_single_step_episodes_are_dropped_among_longer_ones(tmp_path):
 # The real D4RL files
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} not available")
 def test_real_door_human_v0():
     td = load_d4rl_hdf5(DOOR)
     assert td.batch_size[0] == 6704

@@ -1,15 +1,14 @@
 """Per-event statistics of a dataset: hand-made answers and the door-human numbers."""
-from pathlib import Path
 
 import pytest
 import torch
 from tensordict import TensorDict
 
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
 from rm_torchrl.events import EventSpec
 from rm_torchrl.events.stats import event_statistics, format_event_table
 
-D4RL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl"
 
 # One column per event, one row per state s_0..s_T of the episode.
 #   a: fires once in two episodes (at t=1 and, on the episode's last next-state only, at t=2)
@@ -119,12 +118,11 @@ def test_errors():
         format_event_table([])
 
 
-@pytest.mark.skipif(not (D4RL / "door-human-v0.hdf5").is_file(), reason="door-human-v0.hdf5 not available")
 def test_door_human():
     from rm_torchrl.data.d4rl import load_d4rl_hdf5
     from rm_torchrl.refine.label import LabelRM
 
-    td = load_d4rl_hdf5(D4RL / "door-human-v0.hdf5")
+    td = load_d4rl_hdf5(DOOR_HUMAN_V0)  # shipped in the package
     stats = event_statistics(td, "door")
     assert [s["event"] for s in stats] == ["reach_handle", "door_0.2", "door_1.0", "door_1.35"]
     assert all(s["episodes"] == 25 and s["transitions"] == td.numel() for s in stats)

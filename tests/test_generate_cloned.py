@@ -7,21 +7,19 @@ door-human-v0 demonstration once (6,704 transitions): only 7 of the 25 demos ope
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import minari
 import numpy as np
 import pytest
 from conftest import leftovers
 
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY
 from rm_torchrl.generate.cloned import NoisyBCPolicy, bc_weights, generate_cloned, train_bc
 from rm_torchrl.refine import refine
 
-DOOR = str(Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl" / "door-human-v0.hdf5")
-needs_door = pytest.mark.skipif(not Path(DOOR).is_file(), reason=f"{DOOR} is absent")
+DOOR = str(DOOR_HUMAN_V0)  # shipped in the package
 NAME = "rmrl/door-cloned-test-v0"
 STEPS = 14_000
 SEED = 5
@@ -30,8 +28,6 @@ KW = dict(steps=STEPS, seed=SEED, bc_steps=300, demos_source=DOOR)
 
 @pytest.fixture(scope="module")
 def door(cache):
-    if not Path(DOOR).is_file():
-        pytest.skip(f"{DOOR} is absent")
     return minari.load_dataset(generate_cloned("door-cloned", NAME, **KW))
 
 
@@ -39,7 +35,6 @@ def episode_metadata(ds) -> list[dict]:
     return list(ds.storage.get_episode_metadata(range(ds.total_episodes)))
 
 
-@needs_door
 def test_half_demos_half_rollouts(door):
     assert door.total_steps == STEPS
     meta = episode_metadata(door)
@@ -62,7 +57,6 @@ def test_half_demos_half_rollouts(door):
         assert ep.observations.shape == (len(ep.actions) + 1, 39)
 
 
-@needs_door
 def test_load_minari_and_refine(door):
     data = load_minari(NAME, download=False)
     assert data.batch_size[0] == STEPS
@@ -71,7 +65,6 @@ def test_load_minari_and_refine(door):
     assert refined.batch_size[0] > 0
 
 
-@needs_door
 def test_same_seed_same_data_with_two_workers(door, cache):
     other = minari.load_dataset(generate_cloned("door-cloned", "rmrl/door-cloned-again-v0", workers=2, **KW))
     assert other.total_episodes == door.total_episodes
@@ -79,7 +72,6 @@ def test_same_seed_same_data_with_two_workers(door, cache):
         assert np.array_equal(a.observations, b.observations) and np.array_equal(a.actions, b.actions)
 
 
-@needs_door
 def test_bc_is_deterministic_and_seed_matters():
     from rm_torchrl.data.d4rl import load_d4rl_hdf5
 
@@ -100,7 +92,6 @@ class _Boom(Exception):
     pass
 
 
-@needs_door
 def test_failure_leaves_nothing_and_keeps_the_old_dataset(door, cache, monkeypatch):
     import rm_torchrl.generate.cloned as cloned
 
@@ -142,7 +133,6 @@ def test_bad_arguments(cache):
         generate_cloned("door-cloned", "rmrl/x-v0", steps=10, demos_source="/nonexistent/door.hdf5")
 
 
-@needs_door
 def test_existing_dataset_needs_overwrite(door):
     with pytest.raises(RMError, match="already exists"):
         generate_cloned("door-cloned", NAME, **KW)
@@ -164,7 +154,6 @@ def test_relocate_cloned_from_generated_relocate_human(cache):
     assert report.groups and all(n > 0 for n in report.groups.values())
 
 
-@needs_door
 def test_demos_of_another_env_are_refused_before_cloning(cache):
     with pytest.raises(RMError, match="have 39-value observations and 28-value actions, but AdroitHandRelocate-v1 has "
                                       "39 and 30: they come from another environment"):

@@ -3,7 +3,8 @@
 Every test points ``MINARI_DATASETS_PATH`` at ``tmp_path`` so nothing touches the user's cache. The
 tiny files encode (episode, step) in the observation (``[1000 * episode + t, t, episode]``: a jump of
 ~1000 at every real boundary, so ``auto`` sees consistent flags) and the row in actions and rewards,
-so a shifted or reordered round trip cannot pass. The real D4RL files are used when present.
+so a shifted or reordered round trip cannot pass. The real door-human-v0 shipped in the package is
+imported too, and kitchen-complete-v0 when ../shared holds it.
 """
 from __future__ import annotations
 
@@ -20,11 +21,12 @@ import torch
 
 from rm_torchrl.data.d4rl import load_d4rl_hdf5
 from rm_torchrl.data.d4rl_to_minari import IMPORT_METADATA_KEY, import_d4rl
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 
 D4RL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl"
-DOOR = D4RL / "door-human-v0.hdf5"
+DOOR = DOOR_HUMAN_V0  # shipped in the package
 KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
 DOOR_SHA256 = "9df6345e28fcec8f44c0af4d6dacc6ef996958b39b568f53df85cf41dd03412b"
 KITCHEN_SHA256 = "cd797c38cd52dfbe3f960cef73935cc724847abd189e47a703a7a2315ed60a81"
@@ -174,7 +176,6 @@ def test_env_id_is_stored_and_unfitting_spaces_fall_back_to_the_data(cache, tmp_
 
 # ---------------------------------------------------------------------------------------------- real files
 
-@pytest.mark.skipif(not DOOR.is_file(), reason=f"{DOOR} is not on this machine")
 def test_real_door_human_round_trip_and_refine(cache):
     from rm_torchrl.refine import refine
 

@@ -1,7 +1,7 @@
 """load_minari on tiny Minari datasets written to a temporary local cache, so no network is needed.
 
-Datasets are recorded by wrapping a tiny custom gymnasium env in ``minari.DataCollector`` and calling
-``create_dataset`` with ``MINARI_DATASETS_PATH`` pointing under ``tmp_path``. Observations and actions
+Datasets are played in a tiny custom gymnasium env and written by ``minari.create_dataset_from_buffers``
+with ``MINARI_DATASETS_PATH`` pointing under ``tmp_path``. Observations and actions
 encode (episode, step) so that an all-zero, shifted or reordered read cannot pass.
 """
 
@@ -69,35 +69,50 @@ def _action(episode, t):
     return np.array([t / 10, -episode / 10], np.float32)
 
 
-def _write_dataset(dataset_id, schedule=SCHEDULE, dict_obs=False):
-    """Record TinyEnv through ``minari.DataCollector`` into the local Minari cache; return the actions.
+def _stack(items):
+    """Per-step observations (arrays, or nested dicts of arrays) as one array per leaf."""
+    if isinstance(items[0], dict):
+        return {key: _stack([item[key] for item in items]) for key in items[0]}
+    return np.stack(items)
 
-    The collector stores each T-step episode as T + 1 observations (the reset observation included)
-    and T actions; ``load_minari`` turns that into T rows of (observation, action, next observation).
-    TinyEnv is instantiated directly (``env.spec`` is None), which minari accepts with a warning, so
-    nothing has to be registered with gymnasium.
+
+def _write_dataset(dataset_id, schedule=SCHEDULE, dict_obs=False):
+    """Play TinyEnv and write it into the local Minari cache with Minari's own writer; return the actions.
+
+    Each T-step episode is stored as Minari's collector stores it: T + 1 observations (the reset
+    observation included) and T actions; ``load_minari`` turns that into T rows of (observation,
+    action, next observation). The episodes go through ``minari.create_dataset_from_buffers`` (as
+    ``rmrl import-d4rl`` writes) rather than ``minari.DataCollector``, whose buffering needs jax, which
+    the project does not install. TinyEnv is instantiated directly (``env.spec`` is None), which minari
+    accepts with a warning, so nothing has to be registered with gymnasium.
     """
-    collector = minari.DataCollector(TinyEnv(schedule, dict_obs), record_infos=True)
-    all_actions = []
-    try:
-        for episode in range(len(schedule)):
-            collector.reset(seed=episode)
-            t, done = 0, False
-            while not done:
-                action = _action(episode, t)
-                _, _, terminated, truncated, _ = collector.step(action)
-                all_actions.append(action)
-                t, done = t + 1, terminated or truncated
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # code_permalink/author_email/eval_env/env_spec "is None" warnings
-            dataset = collector.create_dataset(
-                dataset_id=dataset_id,
-                algorithm_name="deterministic",
-                author="rm_torchrl tests",
-                description="tiny local test dataset",
-            )
-    finally:
-        collector.close()
+    from minari.data_collector import EpisodeBuffer
+
+    env = TinyEnv(schedule, dict_obs)
+    buffers, all_actions = [], []
+    for episode in range(len(schedule)):
+        observation, _ = env.reset(seed=episode)
+        observations, actions, rewards, terminations, truncations = [observation], [], [], [], []
+        t, done = 0, False
+        while not done:
+            action = _action(episode, t)
+            observation, reward, terminated, truncated, _ = env.step(action)
+            observations.append(observation)
+            actions.append(action)
+            rewards.append(reward)
+            terminations.append(terminated)
+            truncations.append(truncated)
+            t, done = t + 1, terminated or truncated
+        all_actions += actions
+        buffers.append(EpisodeBuffer(id=episode, seed=episode, observations=_stack(observations),
+                                     actions=np.stack(actions), rewards=rewards, terminations=terminations,
+                                     truncations=truncations))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # code_permalink/author_email/eval_env/env_spec "is None" warnings
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id, buffers, env=env, algorithm_name="deterministic", author="rm_torchrl tests",
+            description="tiny local test dataset",
+        )
     assert dataset.total_episodes == len(schedule)
     assert dataset.total_steps == sum(length for length, _ in schedule)
     for episode, (length, _) in zip(dataset.iterate_episodes(), schedule):

@@ -291,20 +291,6 @@ def test_cosine_actor_schedule(tmp_path, dataset):
         assert all(a >= b for a, b in zip(lrs, lrs[1:]))
 
 
-def test_demo_main_job_on_built_data(tmp_path, capsys):
-    """The README's main job end to end: door-like data, two short runs, MuJoCo eval, report."""
-    from rm_torchrl.cli.demo import write_door_like_hdf5
-
-    data = write_door_like_hdf5(tmp_path / "door-like.hdf5", 4000, seed=0)
-    assert main(["demo", "--dataset", str(data), "--steps", "20", "--out", str(tmp_path / "demo")]) == 0
-    report = (tmp_path / "demo" / "report" / "results.md").read_text()
-    assert "| door |" in report and "Ours" in report and "IQL" in report
-    for run in ("door-ours-seed0", "door-iql-seed0"):
-        rows = list(csv.DictReader((tmp_path / "demo" / "runs" / run / "eval.csv").open()))
-        assert int(rows[-1]["step"]) == 20
-    assert (tmp_path / "demo" / "report" / "learning_curves.png").stat().st_size > 0
-
-
 @pytest.mark.parametrize("schedule", ["constant", "cosine"])
 def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkeypatch, schedule):
     """A run that dies between checkpoints resumes from the last one; rows logged after it are dropped;

@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
                    help="*-cloned: total transitions, half human demos (repeated), half BC rollouts (default 1,000,000)")
     p.add_argument("--demos", default=None, metavar="SOURCE",
                    help="*-cloned: the human demos, a D4RL .hdf5 or a local Minari id (default: "
-                        "../shared/data/d4rl/door-human-v0.hdf5 for door, rmrl/relocate-human-v0 for relocate)")
+                        "D4RL's door-human-v0 shipped in the package for door, rmrl/relocate-human-v0 for relocate)")
     p.add_argument("--bc-steps", type=int, default=5000, help="*-cloned: BC gradient steps (default 5000)")
 
 

@@ -31,8 +31,42 @@ def _add_source(p: argparse.ArgumentParser, required: bool = True) -> None:
                    help="which HDF5 flags end episodes (default auto: the consistent ones)")
 
 
+class _TrainHelp(argparse.Action):
+    """``rmrl train -h``: the help, then the dataset and method options found where the recipes live
+    (read only when asked, so that no other command pays for importing the recipe machinery)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import textwrap
+
+        from rm_torchrl.train.recipe import RECIPES
+
+        lines = []
+        for group in ("dataset", "method"):
+            names = sorted(p.stem for p in (RECIPES / group).glob("*.yaml"))
+            lines += textwrap.wrap(f"{group}=NAME ({RECIPES / group}): {', '.join(names)}", width=100,
+                                   subsequent_indent="  ", break_on_hyphens=False)
+        parser.epilog = "\n".join(lines)
+        parser.print_help()
+        parser.exit()
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rm_torchrl")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        from rm_torchrl import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rmrl", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"rmrl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("refine", help="refine a dataset with an event-ordered reward machine")
@@ -71,7 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train offline: dataset=NAME method=NAME, or a recipe file (Hydra overrides)",
                        description="rmrl train [RECIPE.yaml] [key=value ...]: without RECIPE, recipes/train.yaml "
-                                   "composes dataset=NAME (recipes/dataset/) with method=NAME (recipes/method/).")
+                                   "composes\ndataset=NAME (recipes/dataset/) with method=NAME (recipes/method/); "
+                                   "the options are listed below.",
+                       formatter_class=argparse.RawDescriptionHelpFormatter, add_help=False)
+    p.add_argument("-h", "--help", action=_TrainHelp, help="show this help, with the dataset and method options, and exit")
     p.add_argument("args", nargs="*", metavar="[RECIPE] key=value",
                    help="a recipe YAML (optional), then Hydra overrides, e.g. method=iql trainer.steps=2000 seed=3")
     p.add_argument("-m", "--multirun", action="store_true",
@@ -104,14 +141,25 @@ def build_parser() -> argparse.ArgumentParser:
     _generate_arguments(p)
     p.set_defaults(run="rm_torchrl.cli.generate:run")
 
-    p = sub.add_parser("demo", help="the main job: refine door data, train IQL with and without the RM, "
-                                     "evaluate in MuJoCo, write the report (no download)")
-    p.add_argument("--dataset", help="a door D4RL .hdf5 (default: ../shared/data/d4rl/door-human-v0.hdf5 if "
-                                     "present, else door-like data built here)")
-    p.add_argument("--steps", type=int, default=3000, help="gradient steps per run")
-    p.add_argument("--transitions", type=int, default=20_000, help="size of the built door-like data")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="runs/demo", metavar="DIR")
+    from rm_torchrl.cli import demo as _demo
+
+    p = sub.add_parser("demo", help="the main job on the real door-human-v0 shipped in the package: ours and IQL "
+                                     "from the recipes, a few seeds, MuJoCo evaluation, the report (no download)",
+                       description="rmrl demo [--out DIR] [--steps N] [key=value ...]: dataset=door-human-v0 with "
+                                   "method=ours and method=iql, as rmrl train composes them, at a short budget; "
+                                   "runs go to DIR/runs/demo-<method>-seed<k> (never deleted: run again, finished "
+                                   "runs are skipped), the report to DIR/report (results.md, demo.md).")
+    p.add_argument("overrides", nargs="*", metavar="key=value",
+                   help="overrides for every run's recipe after the demo's own, e.g. trainer.compile=false")
+    p.add_argument("--dataset", metavar="FILE.hdf5",
+                   help="another door D4RL .hdf5 file (default: the packaged door-human-v0, D4RL, CC BY 4.0)")
+    p.add_argument("--steps", type=int, default=_demo.STEPS, help=f"gradient steps per run (default {_demo.STEPS})")
+    p.add_argument("--seeds", type=int, default=_demo.SEEDS,
+                   help=f"seeds per method (default {_demo.SEEDS}: the report shows a spread)")
+    p.add_argument("--seed", type=int, default=0, help="the first seed (default 0)")
+    p.add_argument("--episodes", type=int, default=_demo.EPISODES,
+                   help=f"episodes per evaluation (default {_demo.EPISODES}; {_demo.EVALUATIONS} evaluations a run)")
+    p.add_argument("--out", default="runs/demo", metavar="DIR", help="output folder (default runs/demo)")
     p.set_defaults(run="rm_torchrl.cli.demo:run")
     return parser
 

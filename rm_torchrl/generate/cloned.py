@@ -37,6 +37,7 @@ from typing import Callable
 
 import numpy as np
 
+from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate.record import (
     Episode,
@@ -48,7 +49,7 @@ from rm_torchrl.generate.record import (
     run_episode,
     write_generated,
 )
-DEFAULT_DOOR_DEMOS = "../shared/data/d4rl/door-human-v0.hdf5"  # relative to the project root, like the demo
+DEFAULT_DOOR_DEMOS = str(DOOR_HUMAN_V0)  # D4RL's door-human-v0, shipped in the package like the demo's data
 
 
 @dataclass(frozen=True)

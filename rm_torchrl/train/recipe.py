@@ -25,6 +25,7 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
+from rm_torchrl.data.embedded import embedded_file
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
 from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
@@ -39,6 +40,8 @@ _VALUE_KEYS = tuple(f.name for f in dataclasses.fields(Recipe) if f.name != "met
 ConfigStore.instance().store(name=SCHEMA, node=Recipe)
 #: ``${recipes_dir:}``: the recipes folder, for dataset options whose files lie beside the checkout.
 OmegaConf.register_new_resolver("recipes_dir", lambda: str(RECIPES), replace=True)
+#: ``${embedded:door-human-v0.hdf5}``: a data file shipped inside the package (works from any directory).
+OmegaConf.register_new_resolver("embedded", lambda name: str(embedded_file(name)), replace=True)
 
 
 def hydra_overrides(overrides, path=None) -> list[str]:
