@@ -398,6 +398,20 @@ def test_version(capsys):
     assert capsys.readouterr().out == f"rmrl {version('rm_torchrl')}\n"
 
 
+@pytest.mark.parametrize("backend", ["bogus", "osmesa"])
+def test_a_mujoco_gl_that_cannot_load_is_one_line(tmp_path, backend):
+    """A fresh process: MuJoCo reads MUJOCO_GL once, at its first import (osmesa: no OSMesa library here)."""
+    env = {**os.environ, "MUJOCO_GL": backend}
+    probe = subprocess.run([sys.executable, "-c", "import mujoco"], env=env, capture_output=True, text=True)
+    if probe.returncode == 0:
+        pytest.skip(f"MUJOCO_GL={backend} loads on this machine")
+    done = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "rm-graph", "--events", "door"], env=env,
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"rmrl: error: MuJoCo cannot start with MUJOCO_GL={backend} (")
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+
+
 def test_train_help_lists_the_dataset_and_method_options(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["train", "--help"])

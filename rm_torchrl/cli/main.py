@@ -175,7 +175,25 @@ def _terminate(signum, frame):
     raise Terminated
 
 
+def _check_mujoco_gl() -> None:
+    """MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when imported, and a bad one fails deep in PyOpenGL."""
+    backend = os.environ.get("MUJOCO_GL")
+    if not backend:
+        return
+    try:
+        import mujoco  # noqa: F401
+    except Exception as err:  # RuntimeError for an unknown name, AttributeError for a missing library
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise RMError(f"MuJoCo cannot start with MUJOCO_GL={backend} ({type(err).__name__}: {first}); "
+                      "unset it, or set MUJOCO_GL=egl on a machine without a display") from None
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        _check_mujoco_gl()
+    except RMError as err:
+        print(f"rmrl: error: {err}", file=sys.stderr)
+        return 2
     args = build_parser().parse_args(argv)
     module, _, func = args.run.partition(":")
     if threading.current_thread() is threading.main_thread():
