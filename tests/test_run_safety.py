@@ -22,7 +22,7 @@ from rm_torchrl.cli.main import main
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 
-from test_sweeps import _alive, _children
+from test_sweeps import _alive, signal_while_training
 from test_train import make_recipe, write_d4rl
 
 
@@ -219,19 +219,9 @@ def test_a_signal_to_run_many_reaches_its_runs_which_checkpoint_and_none_outlive
     recipe = make_recipe(tmp_path, dataset)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     steps = ["trainer.log_every=10", "trainer.checkpoint_every=1000000"]
-    proc = subprocess.Popen([sys.executable, "-c", GRID, str(recipe), "trainer.steps=1000000", *steps],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     runs = [tmp_path / "runs" / f"tiny-seed{k}" for k in range(2)]
-    try:
-        end = time.time() + 180
-        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in runs):
-            assert proc.poll() is None and time.time() < end, proc.communicate()
-            time.sleep(0.05)
-        children = _children(proc.pid)
-        proc.send_signal(signum)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
+    proc, err, children = signal_while_training(
+        [sys.executable, "-c", GRID, str(recipe), "trainer.steps=1000000", *steps], runs, signum)
     assert _alive(children, wait=60) == []
     stopped = [torch.load(r / "checkpoint.pt", weights_only=True)["step"] for r in runs]
     assert all(0 < s < 1000000 for s in stopped), stopped
@@ -326,7 +316,7 @@ def test_an_eval_env_of_another_size_is_a_one_line_error_and_the_run_can_start_a
 
 def test_rm_graph_into_a_missing_place_and_into_a_closed_pipe(tmp_path, capsys):
     assert main(["rm-graph", "--events", "door", "--out", str(tmp_path / "missing" / "rm.dot")]) == 2
-    assert "cannot write --out" in capsys.readouterr().err
+    assert "--out: cannot write" in capsys.readouterr().err
     spec = tmp_path / "six.yaml"  # 1,957 RM states: far more text than a pipe holds, so the write must fail
     spec.write_text("events:\n" + "".join(f"  - {{name: ev{i}, key: observation, index: {i}, op: '>', value: 0}}\n"
                                           for i in range(6)))

@@ -214,6 +214,24 @@ def _alive(pids: list[int], wait: float = 15) -> list[int]:
         time.sleep(0.2)
 
 
+def signal_while_training(cmd: list[str], runs: list[Path], signum: int) -> tuple[subprocess.Popen, str, list[int]]:
+    """Starts ``cmd``, waits until every run of ``runs`` has logged a loss, sends ``signum`` and
+    waits for the process: returns it, its stderr and the children it had when signalled."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        end = time.time() + 180
+        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in runs):  # every run trains
+            assert proc.poll() is None and time.time() < end, proc.communicate()
+            time.sleep(0.05)
+        children = _children(proc.pid)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    return proc, err, children
+
+
 @pytest.mark.parametrize("jobs,signum", [(2, signal.SIGTERM), (1, signal.SIGTERM), (2, signal.SIGINT)])
 def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_the_rerun_resumes(
         tmp_path, dataset, jobs, signum):
@@ -224,20 +242,8 @@ def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_th
     out = tmp_path / "sweep"
     argv = [sys.executable, "-m", "rm_torchrl.cli.main", "train", "-m", "--jobs", str(jobs), str(path), "seed=0,1,2",
             f"out={out}", "trainer.log_every=10", "trainer.checkpoint_every=1000000"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([*argv, "trainer.steps=1000000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
     running = [out / f"tiny-seed{k}" for k in range(jobs)]
-    try:
-        end = time.time() + 180
-        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in running):  # every job trains
-            assert proc.poll() is None and time.time() < end, proc.communicate()
-            time.sleep(0.05)
-        workers = _children(proc.pid)
-        proc.send_signal(signum)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
+    proc, err, workers = signal_while_training([*argv, "trainer.steps=1000000"], running, signum)
     assert proc.returncode == 128 + signum, err
     steps = [steps_of(r) for r in running]
     assert all(0 < s < 1000000 for s in steps), steps
@@ -251,6 +257,7 @@ def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_th
     if signum == signal.SIGINT:
         return  # the same forwarding as SIGTERM's: the rerun is tested once per launcher mode
     target = max(steps) + 20
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
     again = subprocess.run([*argv, f"trainer.steps={target}"], capture_output=True, text=True, env=env, timeout=300)
     assert again.returncode == 0, again.stderr
     assert all(f"{r}: resuming" in again.stderr for r in running), again.stderr

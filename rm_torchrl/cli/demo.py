@@ -13,7 +13,6 @@ differs from this one (other data, a longer budget) is refused, not replaced.
 """
 from __future__ import annotations
 
-import os
 import sys
 from argparse import Namespace
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 
 from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
+from rm_torchrl.files import write_atomic
 
 METHODS = ("ours", "iql")
 #: The default budget, measured (README, Quick start): at 2,000 steps every seed of ours scored above
@@ -131,15 +131,6 @@ def summary(run_dirs: list[Path], label: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def run(args) -> int:
     from rm_torchrl.cli.report import run as report
     from rm_torchrl.cli.train import run_grid
@@ -169,7 +160,7 @@ def run(args) -> int:
     out = Path(args.out) / "report"
     code = report(Namespace(paths=[str(d) for d in run_dirs], out=str(out), dataset_from="source", decimals=1))
     text = summary(run_dirs, label)
-    _write(out / RESULTS, text)
+    write_atomic(out / RESULTS, text)
     print(f"\n{text}", end="")
     print(f"wrote {out / RESULTS}", file=sys.stderr)
     return code

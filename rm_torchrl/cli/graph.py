@@ -1,11 +1,11 @@
 """``rmrl rm-graph``: the RM of an event spec as Graphviz DOT or Mermaid text (``--order a,b,c``: that order's path)."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
+from rm_torchrl.files import WriteFailed, write_atomic
 from rm_torchrl.rm.diagram import to_dot, to_mermaid
 from rm_torchrl.rm.machine import EventOrderedRM
 
@@ -15,15 +15,10 @@ def run(args) -> int:
     order = None if getattr(args, "order", None) is None else args.order.split(",")
     text = (to_dot if args.format == "dot" else to_mermaid)(rm, order=order)
     if args.out:
-        out = Path(args.out)
-        tmp = out.with_name(f".{out.name}.tmp")
         try:
-            tmp.write_text(text)
-            os.replace(tmp, out)
-        except OSError as err:
-            if tmp.parent.is_dir():
-                tmp.unlink(missing_ok=True)
-            raise RMError(f"cannot write --out {out}: {err.strerror}") from None
+            write_atomic(Path(args.out), text)
+        except WriteFailed as err:
+            raise RMError(f"--out: {err}") from None
         what = (f"the {len(order) + 1}-state path {' > '.join(['e0', *(e.strip() for e in order)])} of the RM"
                 if order else f"the {rm.num_states}-state RM")
         print(f"wrote {what} to {args.out}")

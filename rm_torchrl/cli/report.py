@@ -7,11 +7,11 @@ on refined data, ``DIR/dataset_sizes.png``; every file atomically. Prints Table 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.files import write_atomic
 
 RESULTS = "results.md"
 CURVES = "learning_curves.png"
@@ -36,16 +36,6 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     return add_arguments(argparse.ArgumentParser(prog="rmrl report", description=__doc__.splitlines()[0]))
-
-
-def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def run(args) -> int:
@@ -86,7 +76,7 @@ def run(args) -> int:
             text += _gifs(runs, out, getattr(args, "gif_steps", 100))
         except RMError as err:  # no OpenGL backend, say: the tables and figures are still written
             gif_error = err
-    _write_text(out / RESULTS, text)
+    write_atomic(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
     print(results_table(groups, args.decimals))

@@ -18,7 +18,9 @@ from pathlib import Path
 
 import torch
 
+from rm_torchrl import files
 from rm_torchrl.errors import RMError
+from rm_torchrl.files import WriteFailed
 from rm_torchrl.run_format import CHECKPOINT, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES, temp_name
 
 #: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
@@ -67,28 +69,9 @@ class RunLock:
             self.fd = None
 
 
-class WriteFailed(RMError):
-    """A run's file could not be written (a full disk, a read-only or vanished directory): one line
-    naming the path. Whatever the file held before is still there, and nothing partial is left."""
-
-    def __init__(self, path: Path, err: OSError):
-        super().__init__(f"cannot write {path}: {err.strerror or err}")
-        self.path = Path(path)
-
-
 def write_atomic(path: Path, data: bytes | str) -> None:
-    """``data`` into ``path`` through its temporary file (:func:`~rm_torchrl.run_format.temp_name`),
-    renamed over ``path`` when complete; when writing fails the temporary file is removed, so a full
-    disk keeps the previous version and gets its space back."""
-    path = Path(path)
-    tmp = path.with_name(temp_name(path.name))
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-        os.replace(tmp, path)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise WriteFailed(path, err) from None
+    """A run file written whole or not at all, through its temporary name (:func:`temp_name`)."""
+    files.write_atomic(path, data, Path(path).with_name(temp_name(Path(path).name)))
 
 
 @contextmanager

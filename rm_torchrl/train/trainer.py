@@ -339,8 +339,8 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
             bar.update()
             if shown and step % 50 == 0:
                 bar.set_postfix(shown, refresh=False)
+        checkpoint(completed)  # before the bar's last line: a parent that died leaves a broken pipe to write to
         bar.close()
-        checkpoint(completed)
     if stop.signum is not None:
         message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {recipe.trainer.steps}; "
                    "checkpoint written, continue with resume=true")

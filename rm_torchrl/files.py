@@ -1,0 +1,32 @@
+"""Whole-or-nothing file writes: a reader never sees half a file, and a full disk costs nothing."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from rm_torchrl.errors import RMError
+
+
+class WriteFailed(RMError):
+    """A file could not be written (a full disk, a read-only or vanished directory): one line naming
+    the path. Whatever the file held before is still there, and nothing partial is left."""
+
+    def __init__(self, path: Path, err: OSError):
+        super().__init__(f"cannot write {path}: {err.strerror or err}")
+        self.path = Path(path)
+
+
+def write_atomic(path: Path, data: bytes | str, tmp: Path | None = None) -> None:
+    """``data`` into ``path`` through ``tmp`` (default ``.<name>.tmp`` beside it), renamed over
+    ``path`` when complete; when writing fails the temporary file is removed, so a full disk keeps
+    the previous version and gets its space back."""
+    path = Path(path)
+    tmp = Path(tmp) if tmp is not None else path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, path)
+    except OSError as err:
+        if tmp.parent.is_dir():
+            tmp.unlink(missing_ok=True)
+        raise WriteFailed(path, err) from None
