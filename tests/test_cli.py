@@ -401,7 +401,8 @@ def test_version(capsys):
 @pytest.mark.parametrize("backend", ["bogus", "osmesa"])
 def test_a_mujoco_gl_that_cannot_load_is_one_line(tmp_path, backend):
     """A fresh process: MuJoCo reads MUJOCO_GL once, at its first import (osmesa: no OSMesa library here)."""
-    env = {**os.environ, "MUJOCO_GL": backend}
+    env = {k: v for k, v in os.environ.items() if k != "PYOPENGL_PLATFORM"}  # MuJoCo derives it from MUJOCO_GL
+    env["MUJOCO_GL"] = backend
     probe = subprocess.run([sys.executable, "-c", "import mujoco"], env=env, capture_output=True, text=True)
     if probe.returncode == 0:
         pytest.skip(f"MUJOCO_GL={backend} loads on this machine")
