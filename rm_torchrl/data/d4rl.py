@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from rm_torchrl.data.sources import require_finite
+from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
 
 EPISODE_ENDS = ("auto", "terminals", "timeouts", "both")

@@ -20,7 +20,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data.datasets import MinariExperienceReplay, minari_data
 
-from rm_torchrl.data.sources import require_finite
+from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
 
 _BOOKKEEPING = ("index", "_weight", "done", "terminated", "truncated")

@@ -5,8 +5,7 @@ import errno
 import os
 from pathlib import Path
 
-import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 
 from rm_torchrl.errors import RMError
 
@@ -49,40 +48,3 @@ def _check_path(source: str) -> None:
                           "give the real file") from None
         if os.path.islink(source):
             raise RMError(f"{source} is a symbolic link to {os.readlink(source)}, which does not exist") from None
-
-
-_FLOAT32_MAX = torch.finfo(torch.float32).max
-
-
-def require_finite(entries, source, unit: str = "transition") -> None:
-    """Refuses complex, NaN, inf or beyond-float32 values in ``entries``, naming the entry, rows and columns.
-
-    ``entries``: a TensorDict or a ``name -> tensor`` mapping, checked as read, before the cast to
-    float32 that would turn 1e300 into inf after a finiteness test (or drop an imaginary part with
-    only a warning). ``unit`` names what a row is ("row" of a file, "transition").
-    """
-    items = entries.items(include_nested=True, leaves_only=True) if isinstance(entries, TensorDictBase) \
-        else entries.items()
-    for key, value in items:
-        name = "/".join(key) if isinstance(key, tuple) else key
-        if value.is_complex():
-            raise RMError(f"{source}: {name} hold complex numbers ({str(value.dtype).removeprefix('torch.')}); "
-                          "only real values can be used")
-        if not value.is_floating_point():
-            continue
-        flat = value.reshape(value.shape[0] if value.ndim else 1, -1)
-        if not bool(torch.isfinite(flat).all()):
-            _refuse(~torch.isfinite(flat), source, name, "NaN or inf", unit)
-        if torch.finfo(value.dtype).max > _FLOAT32_MAX:  # float64
-            big = flat.abs() > _FLOAT32_MAX
-            if bool(big.any()):
-                _refuse(big, source, name, f"values beyond float32's range (|x| > {_FLOAT32_MAX:.2g})", unit)
-
-
-def _refuse(bad: torch.Tensor, source, name: str, what: str, unit: str) -> None:
-    """The one-line error for the (rows, columns) ``bad`` of entry ``name``."""
-    rows = bad.any(1).nonzero().flatten()
-    columns = bad.any(0).nonzero().flatten()
-    where = f" (column(s) {columns[:5].tolist()})" if bad.shape[1] > 1 else ""
-    raise RMError(f"{source}: {name} contain {what} in {rows.numel()} {unit}(s), first at {unit}s "
-                  f"{rows[:5].tolist()}{where}")
