@@ -195,7 +195,8 @@ def test_results_md_header_and_figures(reported, report_output):
     assert "`score` (door-human, kitchen-partial)" in text and "`return_mean` (relocate-cloned" in text
     assert "![Learning curves](learning_curves.png)" in text and "(dataset_sizes.png)" in text
     assert "| door-human | -20.4 ± 3.0 | – | 74.8 ± 5.0 | 75.8 ± 2.5 | **439.5 ± 12.0** |" in text
-    assert report_output.strip() in text  # stdout is Table 1
+    measured, table = report_output.strip().split("\n\n")  # stdout: what was measured (the budget), then Table 1
+    assert measured.startswith("Measured: 30 training runs") and measured in text and table in text
 
 
 def test_cells_with_fewer_seeds_or_unfinished_runs_are_marked(tmp_path):
@@ -421,7 +422,7 @@ def test_one_seed_shows_its_value_alone_never_plus_minus_zero(tmp_path, capsys):
     assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
     out = capsys.readouterr().out
     assert table_rows(out)["door-human"] == ["2.0", "**5.0**"]
-    assert "±" not in out
+    assert "±" not in out.split("| Dataset |")[1]
     assert "one seed: its value alone" in (tmp_path / "out" / "results.md").read_text()
 
 

@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args) -> int:
     from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves
     from rm_torchrl.report.runs import group_runs, load_runs
-    from rm_torchrl.report.tables import nonfinite_lines, results_markdown, results_table
+    from rm_torchrl.report.tables import describe, nonfinite_lines, results_markdown, results_table
 
     if args.decimals < 0 or args.decimals > 6:
         raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
@@ -79,7 +79,7 @@ def run(args) -> int:
     write_atomic(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
-    print(results_table(groups, args.decimals))
+    print("\n".join([*describe(runs, groups), "", results_table(groups, args.decimals)]))  # the budget beside the numbers
     print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} run{'s' * (len(runs) != 1)})", file=sys.stderr)
     if gif_error is not None:
         raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")

@@ -137,7 +137,7 @@ def _join(items: Sequence) -> str:
     return ", ".join(str(i) for i in items)
 
 
-def _describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
+def describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
     seeds = sorted({r.seed for r in runs})
     finals = Counter(r.final_step for r in runs)
     last = max(finals)
@@ -180,7 +180,7 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
     (``(title, relative path)`` pairs) and the runs left out (``skipped``: failed or not yet evaluated)."""
     runs = list(runs)
     groups = list(groups) if groups is not None else group_runs(runs)
-    parts = ["# Results", "", *_describe(runs, groups), "",
+    parts = ["# Results", "", *describe(runs, groups), "",
              "## Final evaluation (Table 1)", "", results_table(groups, decimals), ""]
     left_out = nonfinite_lines(groups)
     if left_out:
