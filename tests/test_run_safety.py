@@ -63,13 +63,20 @@ def test_nan_in_the_data_is_refused_by_train_refine_and_import(tmp_path, dataset
         values[5] = np.nan
         del f[key]
         f[key] = values
+    refused_by_train_refine_and_import(tmp_path, bad, f"{key} contain NaN or inf in 1 row(s), first at rows [5]",
+                                       capsys, cache)
+
+
+def refused_by_train_refine_and_import(tmp_path: Path, bad: Path, message: str, capsys, cache) -> None:
+    """``rmrl train``, ``refine`` and ``import-d4rl`` on the file ``bad`` all exit 2 with ``message``
+    and write nothing: no refined output, no checkpoint, no Minari dataset."""
     assert main(["train", str(make_recipe(tmp_path, bad)), "--no-progress"]) == 2
     assert main(["refine", "--dataset", str(bad), "--events", "door", "--out", str(tmp_path / "refined")]) == 2
     assert main(["import-d4rl", str(bad), "--out-name", "test/bad-v0"]) == 2
     err = capsys.readouterr().err
-    assert err.count(f"{key} contain NaN or inf in 1 row(s), first at rows [5]") == 3
+    assert err.count(message) == 3, err
     assert "Traceback" not in err
-    assert not (tmp_path / "refined").exists()
+    assert not (tmp_path / "refined").exists() and not any((tmp_path / "runs").rglob("*.pt"))
     assert not any(cache.rglob("bad-v0*"))
 
 
