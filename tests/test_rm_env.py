@@ -356,6 +356,26 @@ def test_kitchen_v0_observation():
         TransformedEnv(SerialEnv(1, lambda: GymEnv("FrankaKitchen-v1")), KitchenV0Observation()).reset()
 
 
+def test_kitchen_v0_observation_in_a_vector_env_reads_each_sub_env():
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode, SyncVectorEnv
+    from torchrl.envs import GymWrapper
+
+    vec = SyncVectorEnv([lambda: gym.make("FrankaKitchen-v1", tasks_to_complete=KITCHEN_TASKS)] * 2,
+                        autoreset_mode=AutoresetMode.DISABLED)
+    env = TransformedEnv(GymWrapper(vec), Compose(KitchenV0Observation(), RMEnvTransform("kitchen-v0")))
+    try:
+        env.set_seed(0)
+        td = env.rollout(3)  # random actions, one stream per env
+        last = td["next", "observation"][:, -1]
+        assert last.shape == (2, 60)
+        for i, sub in enumerate(vec.envs):
+            assert torch.equal(last[i, :30], torch.as_tensor(sub.unwrapped.data.qpos[:30]))
+        assert not torch.equal(last[0, :9], last[1, :9])  # two envs, two action streams
+    finally:
+        env.close()
+
+
 @pytest.mark.skipif(not KITCHEN_V0.is_file(), reason=f"{KITCHEN_V0} not available")
 def test_kitchen_v0_matches_d4rl_initial_state():
     import h5py

@@ -16,6 +16,8 @@ def add_arguments(p) -> None:
     p.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")
     p.add_argument("--seed", type=int, help="environment seed, 0..2**32-1 (default: the run's seed)")
     p.add_argument("--device", default="cpu", help="where the policy runs: cpu (default), cuda, cuda:N, auto")
+    p.add_argument("--sequential", action="store_true",
+                   help="run the episodes one after another in one env (default: as one batch of envs; same starts)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a line of figures")
     p.add_argument("--video", metavar="FILE", help="also render episodes to FILE (.mp4 or .gif) with the RM state "
                                                  "drawn on each frame (MUJOCO_GL=egl without a display)")
@@ -50,7 +52,8 @@ def run(args) -> int:
     renderer = loaded.render_env() if args.video else None  # before the evaluation: no GL is one line now
     video_error = None
     try:
-        result = {"run": str(args.run_dir), "step": loaded.step, **loaded.evaluate(args.episodes, args.seed)}
+        evaluation = loaded.evaluate(args.episodes, args.seed, vectorised=not args.sequential)
+        result = {"run": str(args.run_dir), "step": loaded.step, **evaluation}
         if renderer is not None:
             try:
                 result["video"] = str(loaded.video(args.video, episodes=args.video_episodes, seed=args.seed,

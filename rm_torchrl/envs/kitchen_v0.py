@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
@@ -63,8 +64,9 @@ class KitchenV0Observation(Transform):
 
     Args:
         source: ``"qpos"`` (default) reads the exact MuJoCo ``qpos`` of the wrapped
-            ``GymEnv`` (``base_env._env.unwrapped.data.qpos``), so the transform must sit on a single,
-            unbatched ``GymEnv("FrankaKitchen-v1")`` (put it inside each worker of a batched env);
+            ``GymEnv`` (``base_env._env.unwrapped.data.qpos``), so the transform must sit on a
+            ``GymEnv("FrankaKitchen-v1")`` or a ``GymWrapper`` of a gymnasium ``SyncVectorEnv`` of them
+            (inside each worker of a ``SerialEnv``/``ParallelEnv``);
             ``"observation"`` rebuilds it from the 59-dim observation itself (``[0:9]`` and
             ``[18:39]``, which carry the env's small simulated noise) and works anywhere, also
             outside ``SerialEnv``/``ParallelEnv``.
@@ -97,21 +99,25 @@ class KitchenV0Observation(Transform):
         return f"{type(self).__name__}(source={self.source!r}, tasks={list(self.tasks)})"
 
     # ------------------------------------------------------------------ data
-    def _mujoco_data(self):
+    def _qpos(self) -> np.ndarray:
+        """``qpos[:30]`` of the wrapped env, ``(30,)``, or ``(N, 30)`` under a gymnasium vector env of N."""
         parent = self.parent
         base = getattr(parent, "base_env", None) if parent is not None else None
         gym_env = getattr(base, "_env", None) if base is not None else None
-        data = getattr(getattr(gym_env, "unwrapped", None), "data", None)
-        if data is None or not hasattr(data, "qpos") or (base is not None and len(base.batch_size) > 0):
+        batched = base is not None and len(base.batch_size) > 0
+        subs = getattr(gym_env, "envs", None) if batched else [gym_env]
+        datas = [getattr(getattr(e, "unwrapped", None), "data", None) for e in subs or []]
+        if not datas or any(d is None or not hasattr(d, "qpos") for d in datas) or \
+                (batched and (len(base.batch_size) != 1 or len(datas) != base.batch_size[0])):
             raise RMError(
-                "KitchenV0Observation(source='qpos') reads the MuJoCo state of an unbatched "
-                "GymEnv('FrankaKitchen-v1'), but its base env is "
+                "KitchenV0Observation(source='qpos') reads the MuJoCo state of a GymEnv('FrankaKitchen-v1') or of "
+                "a gymnasium SyncVectorEnv of them, but its base env is "
                 f"{type(base).__name__ if base is not None else 'missing'}; put the transform inside each "
                 "worker of a batched env, or use source='observation'"
             )
-        if data.qpos.shape[0] < 30:
-            raise RMError(f"KitchenV0Observation: the env's qpos has {data.qpos.shape[0]} entries, expected 30 (FrankaKitchen-v1)")
-        return data
+        if datas[0].qpos.shape[0] < 30:
+            raise RMError(f"KitchenV0Observation: the env's qpos has {datas[0].qpos.shape[0]} entries, expected 30 (FrankaKitchen-v1)")
+        return np.stack([d.qpos[:30] for d in datas]) if batched else datas[0].qpos[:30].copy()
 
     def _v0(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.shape[-1] != 59:
@@ -120,7 +126,7 @@ class KitchenV0Observation(Transform):
                 f"{obs.shape[-1]} (is it already transformed?)"
             )
         if self.source == "qpos":
-            qpos = torch.as_tensor(self._mujoco_data().qpos[:30].copy(), dtype=obs.dtype, device=obs.device)
+            qpos = torch.as_tensor(self._qpos(), dtype=obs.dtype, device=obs.device)
             state = qpos.expand(*obs.shape[:-1], 30)
         else:
             state = torch.cat([obs[..., 0:9], obs[..., 18:39]], -1)

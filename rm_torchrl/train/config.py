@@ -159,6 +159,7 @@ class EvalConfig:
     max_steps: int = 200
     every: int = 2000
     episodes: int = 10
+    vectorised: bool = True  # all episodes as one batch of envs; false: one after another (same starts)
     score: str = ""  # door | relocate | kitchen: the D4RL normalisation of the return
     reward: str = "auto"  # auto: D4RL's reward where the v1 env's differs (door, relocate), else the env's | d4rl | env
 

@@ -2,6 +2,12 @@
 
 The env applies the same event spec, RM encoding and observation normalisation as the training
 data, so the policy sees exactly the features it was trained on.
+
+By default all episodes of an evaluation run together (``eval.vectorised``): one gymnasium
+``SyncVectorEnv`` under TorchRL's ``GymWrapper``, every transform applied batch-wise and the policy
+called once per step for the whole batch, so a step costs about what the simulator costs. Episode
+i starts where episode i of the sequential evaluation starts: its sub-env is seeded as the
+sequential env is and reset as often as the sequential env has been before episode i.
 """
 from __future__ import annotations
 
@@ -41,24 +47,30 @@ def reward_convention(recipe: Recipe) -> tuple[str, str | None]:
 
 
 def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str = "cpu",
-                  render: tuple[int, int] | None = None) -> TransformedEnv:
+                  render: tuple[int, int] | None = None, num_envs: int | None = None) -> TransformedEnv:
     """The evaluation env on the CPU, its outputs cast to ``device`` (the policy's) and its actions back.
 
     ``render=(width, height)`` makes the MuJoCo env render rgb arrays (``env.base_env.render()``);
     its first frame is drawn here, so a machine without an OpenGL backend is one line before any
-    episode runs.
+    episode runs. ``num_envs=N`` makes a batch of N envs (batch size ``[N]``, a gymnasium
+    ``SyncVectorEnv`` without autoreset: :func:`run_episodes` ends each episode on its own).
     """
     import gymnasium as gym
-    from torchrl.envs import GymEnv
+    from torchrl.envs import GymEnv, GymWrapper
 
     from rm_torchrl.envs import D4RLReward, RMEnvTransform
     from rm_torchrl.envs.d4rl_reward import import_gymnasium_robotics
 
     task = reward_convention(recipe)[1]
     gym.register_envs(import_gymnasium_robotics(quiet=task is not None))  # D4RLReward corrects what it warns of
+    if render and num_envs:
+        raise RMError("a rendering eval env is a single env: pass render or num_envs, not both")
     try:
         extra = {"render_mode": "rgb_array", "width": render[0], "height": render[1]} if render else {}
-        base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs, **extra)
+        if num_envs:
+            base = GymWrapper(_vector_env(recipe, num_envs))
+        else:
+            base = GymEnv(recipe.eval.env, **recipe.eval.env_kwargs, **extra)
     except Exception as err:  # gymnasium raises many types for a bad id or kwargs, MuJoCo for a missing GL
         raise RMError(_no_renderer(recipe, err) if render else
                       f"cannot make eval env {recipe.eval.env!r}: {type(err).__name__}: {err}") from None
@@ -89,6 +101,17 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
     return env
 
 
+def _vector_env(recipe: Recipe, num_envs: int):
+    """``num_envs`` copies of the recipe's env stepped in this process, never reset by gymnasium itself."""
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+    def make():
+        return gym.make(recipe.eval.env, **recipe.eval.env_kwargs)
+
+    return SyncVectorEnv([make] * num_envs, autoreset_mode=AutoresetMode.DISABLED)
+
+
 def _no_renderer(recipe: Recipe, err: Exception) -> str:
     backend = os.environ.get("MUJOCO_GL")
     text = " ".join(str(err).split()) or type(err).__name__
@@ -114,37 +137,91 @@ def _render_check(recipe: Recipe, base):
     return base
 
 
+def seed_like_sequential(env: TransformedEnv, seed: int) -> None:
+    """Seed a batch from :func:`make_eval_env` so its episode i starts as the sequential evaluation's episode i.
+
+    The sequential env is reset with ``seed`` once, then once more before each episode; sub-env i is
+    reset with ``seed`` and then i times, so its next reset draws what the sequential env's i-th
+    episode drew. Envs whose steps draw from the generator too (FrankaKitchen-v1's observation
+    noise) start from the same simulator state, with another noise stream.
+    """
+    for i, sub in enumerate(env.base_env._env.envs):
+        sub.reset(seed=seed)
+        for _ in range(i):
+            sub.reset()
+
+
+def run_episodes(env: TransformedEnv, policy, max_steps: int, track_rm: bool) -> dict:
+    """One episode in each env of a batch, every episode ending on its own: the returns, the lengths and
+    the RM states reached when ``track_rm``. The policy is called once per step for the whole batch; an
+    env whose episode ended is reset (``step_and_maybe_reset``) and stepped on with the others, and what
+    it does after its episode is not counted."""
+    td = env.reset()
+    n = td.batch_size[0]
+    alive = torch.ones(n, dtype=torch.bool)
+    lengths = torch.zeros(n, dtype=torch.long)
+    rewards = []
+    final = td.get("rm_state").cpu().clone() if track_rm else None
+    for _ in range(max_steps):
+        td, following = env.step_and_maybe_reset(policy(td))
+        nxt = td.get("next")
+        rewards.append(torch.where(alive, nxt.get("reward").reshape(n).cpu(), 0.0))
+        if track_rm:
+            final[alive] = nxt.get("rm_state").cpu()[alive]
+        lengths += alive
+        alive &= ~nxt.get("done").reshape(n).cpu()
+        if not alive.any():
+            break
+        td = following
+    return {"returns": torch.stack(rewards).sum(0), "lengths": lengths, "rm_state": final}
+
+
 class Evaluator:
-    """Runs ``eval.episodes`` deterministic episodes from the same seeds at every evaluation."""
+    """Runs ``eval.episodes`` deterministic episodes from the same seeds at every evaluation: as one batch
+    of envs (``eval.vectorised``, the default) or one after another in a single env."""
 
     def __init__(self, recipe: Recipe, data: PolicyInput, policy, device: torch.device | str = "cpu"):
         self.recipe, self.policy = recipe, policy
-        self.env = make_eval_env(recipe, data, device)
+        self.vectorised = recipe.eval.vectorised
+        self.env = make_eval_env(recipe, data, device, num_envs=recipe.eval.episodes if self.vectorised else None)
         self.track_rm = data.events is not None
         self.reward = reward_convention(recipe)[0]
 
-    def run(self) -> dict:
+    def _batch(self) -> tuple[list[float], list[int], torch.Tensor | None]:
+        seed_like_sequential(self.env, self.recipe.seed)
+        out = run_episodes(self.env, self.policy, self.recipe.eval.max_steps, self.track_rm)
+        return out["returns"].tolist(), out["lengths"].tolist(), out["rm_state"]
+
+    def _sequential(self) -> tuple[list[float], list[int], torch.Tensor | None]:
         self.env.set_seed(self.recipe.seed)
-        returns, events, successes = [], [], []
+        returns, lengths, finals = [], [], []
+        for _ in range(self.recipe.eval.episodes):
+            rollout = self.env.rollout(self.recipe.eval.max_steps, self.policy, break_when_any_done=True)
+            returns.append(float(rollout.get(("next", "reward")).sum()))
+            lengths.append(rollout.shape[-1])
+            if self.track_rm:
+                finals.append(rollout.get(("next", "rm_state"))[-1].cpu())
+        return returns, lengths, (torch.stack(finals) if self.track_rm else None)
+
+    def run(self) -> dict:
         was_training = self.policy.training
         self.policy.eval()
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            for _ in range(self.recipe.eval.episodes):
-                rollout = self.env.rollout(self.recipe.eval.max_steps, self.policy, break_when_any_done=True)
-                returns.append(float(rollout.get(("next", "reward")).sum()))
-                if self.track_rm:
-                    final = rollout.get(("next", "rm_state"))[-1]
-                    events.append(int((final > 0).sum()))
-                    successes.append(bool((final > 0).all()))
-        self.policy.train(was_training)
+        try:
+            with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+                returns, lengths, finals = self._batch() if self.vectorised else self._sequential()
+        finally:
+            self.policy.train(was_training)
         mean = sum(returns) / len(returns)
         std = math.sqrt(sum((r - mean) ** 2 for r in returns) / len(returns))
+        reached = (finals > 0) if finals is not None else None
         return {
             "return_mean": mean,
             "return_std": std,
             "score": normalized_score(self.recipe.eval.score, mean),
-            "success_rate": sum(successes) / len(returns) if successes else float("nan"),
-            "events_mean": sum(events) / len(returns) if events else float("nan"),
+            "success_rate": float(reached.all(-1).float().mean()) if reached is not None else float("nan"),
+            "events_mean": float(reached.sum(-1).float().mean()) if reached is not None else float("nan"),
             "episodes": len(returns),
             "reward": self.reward,
+            "episode_returns": returns,
+            "episode_lengths": lengths,
         }

@@ -44,13 +44,17 @@ class LoadedPolicy:
     inputs: PolicyInput
     device: torch.device  # where the policy's parameters are
 
-    def evaluate(self, episodes: int | None = None, seed: int | None = None) -> dict:
-        """The trainer's evaluation (same seeds, same figures) of this checkpoint."""
-        recipe = copy.deepcopy(self.recipe)  # this call's episodes and seed only
+    def evaluate(self, episodes: int | None = None, seed: int | None = None,
+                 vectorised: bool | None = None) -> dict:
+        """The trainer's evaluation (same seeds, same figures) of this checkpoint; ``vectorised=False``
+        runs the episodes one after another (default: the recipe's ``eval.vectorised``)."""
+        recipe = copy.deepcopy(self.recipe)  # this call's episodes, seed and mode only
         if episodes is not None:
             recipe.eval.episodes = episodes
         if seed is not None:
             recipe.seed = check_seed(seed)
+        if vectorised is not None:
+            recipe.eval.vectorised = bool(vectorised)
         evaluator = Evaluator(recipe, self.inputs, self.policy, self.device)
         try:
             return evaluator.run()
