@@ -38,7 +38,7 @@ from rm_torchrl.train.trainer import resolve_device
 @dataclass
 class LoadedPolicy:
     policy: TensorDictModule  # reads the observation (and RM encoding) keys, writes "action"
-    make_env: Callable[..., TransformedEnv]  # a new evaluation env with the run's transforms (render=(w, h))
+    make_env: Callable[..., TransformedEnv]  # a new evaluation env with the run's transforms (render=(w, h), num_envs=N)
     recipe: Recipe
     step: int  # the checkpoint's gradient step
     inputs: PolicyInput
@@ -122,5 +122,6 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     except RuntimeError as err:
         raise RMError(f"{run_dir / CHECKPOINT} does not fit the networks of its recipe: {str(err).splitlines()[0]}") from None
     method.policy.eval()
-    return LoadedPolicy(method.policy, lambda render=None: make_eval_env(recipe, inputs, target, render), recipe,
+    return LoadedPolicy(method.policy,
+                        lambda render=None, num_envs=None: make_eval_env(recipe, inputs, target, render, num_envs), recipe,
                         int(state["step"]), inputs, target)
