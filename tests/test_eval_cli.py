@@ -52,6 +52,19 @@ def test_the_largest_seed_evaluates_and_one_episode_has_no_spread(capsys, run_di
     assert "±" not in line  # one episode: no spread, never ± 0.0
 
 
+def test_sequential_and_vectorised_evaluations_give_the_same_episodes(capsys, run_dir):
+    import json
+
+    figures = []
+    for extra in ([], ["--sequential"]):
+        assert main(["evaluate", str(run_dir), "--episodes", "3", "--json", *extra]) == 0
+        figures.append(json.loads(capsys.readouterr().out))
+    vectorised, sequential = figures
+    assert vectorised["episode_lengths"] == sequential["episode_lengths"] == [20, 20, 20]
+    assert vectorised["episode_returns"] == pytest.approx(sequential["episode_returns"], rel=1e-4)
+    assert len(set(vectorised["episode_returns"])) == 3  # three episodes from three starts
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--video", "x.avi"], "--video must end in .gif or .mp4, got 'x.avi'"),
     (["--video", "nowhere/x.gif"], "cannot write nowhere/x.gif: nowhere is not a directory"),
