@@ -204,16 +204,17 @@ def report(args) -> None:
                         "final_events": float(run.evals["events_mean"][-1]),
                         "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
     (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-    lines = [f"| dataset | method | steps × seeds | final score | final score IQM [{CI}] | mean score over evaluations | "
-             "final D4RL return | paper's return (0.5M steps) | success (final) | events reached (final) |",
+    lines = [f"| dataset | method | steps × seeds | final score | final score IQM [{CI}] | "
+             "mean score over evaluations | final D4RL return | paper's return (0.5M steps) | success (final) | "
+             "events reached (final) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for g in groups:
         rows = [s for s in summary if s["dataset"] == g.dataset and s["method"] == g.method]
         steps = sorted({s["steps"] for s in rows})
         paper = PAPER.get(g.dataset, {}).get(g.method)
         lines.append(f"| {g.dataset} | {g.method} | {'/'.join(f'{s // 1000}k' for s in steps)} × {len(rows)} | "
-                     f"{_cell([s['final_score'] for s in rows])} | {interval(stats.cell(g.dataset, g.method).iqm, 1)} | "
-                     f"{_cell([s['mean_score'] for s in rows])} | "
+                     f"{_cell([s['final_score'] for s in rows])} | "
+                     f"{interval(stats.cell(g.dataset, g.method).iqm, 1)} | {_cell([s['mean_score'] for s in rows])} | "
                      f"{_cell([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
                      f"{np.mean([s['final_success'] for s in rows]):.0%} | {np.mean([s['final_events'] for s in rows]):.2f} |")
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",

@@ -23,7 +23,7 @@ KEYS = {"metric", "confidence", "reps", "cells", "overall", "probability_of_impr
 
 
 def runs(root: Path, dataset: str, method: str, finals, score: str = "door", step: int = 6000) -> None:
-    """One run per seed 0, 1, ... of ``method`` on ``dataset`` whose last evaluation (at ``step``) is ``finals[seed]``."""
+    """A run per seed 0, 1, ... of ``method`` on ``dataset``, its last evaluation (at ``step``) ``finals[seed]``."""
     name = dataset if method == "ours" else f"{dataset}-{method}"
     for seed, value in enumerate(finals):
         write_run(root, name, seed, method, method == "ours", score, {2000: 0.0, step: float(value)})
@@ -215,7 +215,8 @@ def test_table1_benchmark_report(tmp_path):
     assert agg["reps"] == 300 and {o["method"] for o in agg["overall"]} == {"ours", "iql", "bc"}
     assert by(agg["probability_of_improvement"], "y")["iql"]["p"] == 1.0
     text = (results / "results.md").read_text()
-    assert "final score IQM [95% CI]" in text and "| door-human-v0 | Ours | 50k × 3 | 40.0 ± 10.0 | 40.0 [30.0, 50.0] |" in text
+    assert "final score IQM [95% CI]" in text
+    assert "| door-human-v0 | Ours | 50k × 3 | 40.0 ± 10.0 | 40.0 [30.0, 50.0] |" in text
     assert "## Aggregate over datasets" in text and "| Ours > IQL | 1.00 [1.00, 1.00] |" in text
     assert "- CQL on door-human-v0: 3 runs end at step 10,000, Ours there at 50,000" in text
     assert (results / "performance_profile.png").read_bytes()[:8] == PNG_MAGIC

@@ -216,8 +216,8 @@ def aggregate_lines(aggregates: Aggregates, decimals: int = 1) -> list[str]:
                   "runs that end at the step Ours reached there, so that every method is compared at ours' "
                   "budget; a method covers the datasets it has runs on there.", "",
                   _row(["Method", f"IQM [{CI}]", "Runs", "Steps", "Datasets"]), "|---|---:|---:|---:|---|"]
-        lines += [_row([o.method, interval(o.iqm, decimals),
-                        f"{o.runs} × {len(o.datasets)} dataset{'s' * (len(o.datasets) != 1)} = {o.runs * len(o.datasets)}",
+        lines += [_row([o.method, interval(o.iqm, decimals), f"{o.runs} × {len(o.datasets)} "
+                        f"dataset{'s' * (len(o.datasets) != 1)} = {o.runs * len(o.datasets)}",
                         _budget(o.steps), _covered(o.datasets, pool)]) for o in aggregates.overall]
         lines.append("")
     if aggregates.improvement:
@@ -226,7 +226,8 @@ def aggregate_lines(aggregates: Aggregates, decimals: int = 1) -> list[str]:
                   f"stratified-bootstrap {CI} over the runs of both ({_resampling(aggregates)}).", "",
                   _row(["Comparison", f"P [{CI}]", f"Runs per dataset ({OURS} / Y)", "Steps", "Datasets"]),
                   "|---|---:|---:|---:|---|"]
-        lines += [_row([f"{OURS} > {i.y}", f"{i.p.value:.2f} [{i.p.lo:.2f}, {i.p.hi:.2f}]", f"{i.runs[0]} / {i.runs[1]}",
+        lines += [_row([f"{OURS} > {i.y}", f"{i.p.value:.2f} [{i.p.lo:.2f}, {i.p.hi:.2f}]",
+                        f"{i.runs[0]} / {i.runs[1]}",
                         _budget(i.steps), _covered(i.datasets, pool)]) for i in aggregates.improvement]
         lines.append("")
     if aggregates.notes:
