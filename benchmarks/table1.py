@@ -4,14 +4,17 @@
                                                   # --datasets: only these, relocate-cloned brings relocate-human)
     python benchmarks/table1.py run --jobs 2      # the grid; run it again to skip finished runs, resume killed ones
                                                   # (runs committed under the results in earlier sessions are skipped)
-    python benchmarks/table1.py report            # benchmarks/results/table1/
+    python benchmarks/table1.py report            # benchmarks/results/table1/ (--reps: bootstrap resamples)
 
 Datasets: the real D4RL ``door-human-v0.hdf5`` and the five generated at full size (``rmrl generate``,
 as ``benchmarks/generated_datasets.py`` sizes them), in the Minari cache (``MINARI_DATASETS_PATH``).
 Methods: ours, IQL and BC, 3 seeds, 50k gradient steps; CQL and BCQ (17x and 8x an IQL update on
 this CPU) at 10k steps x 3 seeds on door-human-v0 only, labelled with their budget. Every run
 evaluates every 2000 steps over 10 episodes with D4RL's reward. Run directories are
-``OUT/<dataset>-<method>-seed<k>/`` (``--out``, default ``runs``).
+``OUT/<dataset>-<method>-seed<k>/`` (``--out``, default ``runs``). The report adds rliable's statistics
+(``rm_torchrl.report.stats``): IQMs with bootstrap CIs, the aggregate over datasets at ours' 50k steps
+(CQL and BCQ, at 10k, are left out of it), P(ours > baseline), ``aggregates.json`` and
+``performance_profile.png``.
 """
 from __future__ import annotations
 
@@ -30,8 +33,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from generated_datasets import DATASETS as GENERATED, rmrl  # noqa: E402
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
-from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
+from rm_torchrl.errors import RMError  # noqa: E402
+from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile  # noqa: E402
 from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
+from rm_torchrl.report.stats import REPS, aggregate, write_json  # noqa: E402
+from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note  # noqa: E402
 
 #: Table 1 row -> the dataset option in recipes/dataset/ (rmrl-*: the generated stand-ins, rmrl/<row>-v0)
 DATASETS = {
@@ -171,6 +177,7 @@ def report(args) -> None:
     runs = [r for r in runs if r not in unfinished]
     missing = missing_cells(runs)
     groups = group_runs(runs)
+    stats = aggregate(groups, args.reps)
     (results / "runs").mkdir(parents=True, exist_ok=True)
     summary = []
     for run in runs:
@@ -197,15 +204,17 @@ def report(args) -> None:
                         "final_events": float(run.evals["events_mean"][-1]),
                         "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
     (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-    lines = ["| dataset | method | steps × seeds | final score | mean score over evaluations | final D4RL return | "
-             "paper's return (0.5M steps) | success (final) | events reached (final) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"| dataset | method | steps × seeds | final score | final score IQM [{CI}] | "
+             "mean score over evaluations | final D4RL return | paper's return (0.5M steps) | success (final) | "
+             "events reached (final) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for g in groups:
         rows = [s for s in summary if s["dataset"] == g.dataset and s["method"] == g.method]
         steps = sorted({s["steps"] for s in rows})
         paper = PAPER.get(g.dataset, {}).get(g.method)
         lines.append(f"| {g.dataset} | {g.method} | {'/'.join(f'{s // 1000}k' for s in steps)} × {len(rows)} | "
-                     f"{_cell([s['final_score'] for s in rows])} | {_cell([s['mean_score'] for s in rows])} | "
+                     f"{_cell([s['final_score'] for s in rows])} | "
+                     f"{interval(stats.cell(g.dataset, g.method).iqm, 1)} | {_cell([s['mean_score'] for s in rows])} | "
                      f"{_cell([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
                      f"{np.mean([s['final_success'] for s in rows]):.0%} | {np.mean([s['final_events'] for s in rows]):.2f} |")
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
@@ -217,12 +226,18 @@ def report(args) -> None:
             t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
                       + " / ".join(f"{v:,}" for v in PAPER_T2[dataset]) + " |")
     plot_learning_curves(groups, results / "curves.png")
+    profile = []
+    if stats.profiles:
+        plot_performance_profile(stats, results / "performance_profile.png")
+        profile = ["![performance profile](performance_profile.png)", ""]
+    write_json(stats, results / "aggregates.json")
     hours = _hours(summary)
     text = ["# Table 1 on this machine", "",
             f"{len(runs)} runs; evaluation every 2000 steps over 10 episodes; score = D4RL-normalised return "
             f"({', '.join(sorted({r.reward for r in runs}))} rewards); mean ± sample std over seeds. "
-            f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h.", "",
-            *lines, "", "## Dataset sizes after each refinement stage (Table 2)", "", *t2, "",
+            f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h. {iqm_note(stats)}", "",
+            *lines, "", *aggregate_lines(stats), *profile,
+            "## Dataset sizes after each refinement stage (Table 2)", "", *t2, "",
             "![learning curves](curves.png)", "", "## Machine time", "",
             "Hours of one core per cell (training and evaluation), summed over its runs:", "", *machine_time(summary), "",
             "## Commands", "", "```bash",
@@ -253,6 +268,7 @@ def main() -> int:
     p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
                    help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
     p.add_argument("--methods", nargs="+", choices=list(BUDGETS), help="only these methods (default: all)")
+    p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the report's CIs (default {REPS})")
     args = p.parse_args()
     if args.command == "setup":
         setup(args)
@@ -270,3 +286,5 @@ if __name__ == "__main__":
         from rm_torchrl.cli.main import interrupted
 
         raise SystemExit(interrupted(err, Path(__file__).name))
+    except RMError as err:  # bad input (--reps 0, a broken run directory): one line, no traceback
+        raise SystemExit(f"{Path(__file__).name}: error: {err}")

@@ -155,11 +155,16 @@ def test_method_label(method, refine, expected):
 # --- Table 1 ---------------------------------------------------------------------------------
 
 def test_table1_mean_std_and_bold_best(report_output):
+    """Beside mean ± std, the IQM of the three seeds m - k, m, m + k (their mean) and its bootstrap CI [m - k, m + k]:
+    all three resampled alike has chance 1/27, above the 2.5% each tail cuts."""
     rows = table_rows(report_output)
     assert rows["Dataset"] == ["BC", "BCQ", "IQL", "CQL", "Ours"]  # the paper's column order
-    assert rows["door-human"] == ["-20.4 ± 3.0", "–", "74.8 ± 5.0", "75.8 ± 2.5", "**439.5 ± 12.0**"]
-    assert rows["kitchen-partial"] == ["1.3 ± 0.2", "–", "1.6 ± 0.4", "–", "**3.2 ± 0.3**"]
-    assert rows["relocate-cloned"] == ["-51.6 ± 1.0", "-56.0 ± 2.0", "–", "–", "**492.4 ± 8.0**"]
+    assert rows["door-human"] == ["-20.4 ± 3.0 · IQM -20.4 [-23.4, -17.4]", "–", "74.8 ± 5.0 · IQM 74.8 [69.8, 79.8]",
+                                  "75.8 ± 2.5 · IQM 75.8 [73.3, 78.3]", "**439.5 ± 12.0** · IQM 439.5 [427.5, 451.5]"]
+    assert rows["kitchen-partial"] == ["1.3 ± 0.2 · IQM 1.3 [1.1, 1.5]", "–", "1.6 ± 0.4 · IQM 1.6 [1.2, 2.0]", "–",
+                                       "**3.2 ± 0.3** · IQM 3.2 [2.9, 3.5]"]
+    assert rows["relocate-cloned"] == ["-51.6 ± 1.0 · IQM -51.6 [-52.6, -50.6]", "-56.0 ± 2.0 · IQM -56.0 [-58.0, -54.0]",
+                                       "–", "–", "**492.4 ± 8.0** · IQM 492.4 [484.4, 500.4]"]
     assert list(rows) == ["Dataset", "door-human", "kitchen-partial", "relocate-cloned"]
 
 
@@ -194,7 +199,8 @@ def test_results_md_header_and_figures(reported, report_output):
     assert "gradient step 6,000" in text and "10 episodes per evaluation" in text
     assert "`score` (door-human, kitchen-partial)" in text and "`return_mean` (relocate-cloned" in text
     assert "![Learning curves](learning_curves.png)" in text and "(dataset_sizes.png)" in text
-    assert "| door-human | -20.4 ± 3.0 | – | 74.8 ± 5.0 | 75.8 ± 2.5 | **439.5 ± 12.0** |" in text
+    assert "| door-human | -20.4 ± 3.0 · IQM -20.4 [-23.4, -17.4] | – | 74.8 ± 5.0 · IQM 74.8 [69.8, 79.8] |" in text
+    assert "IQM [lo, hi]: the interquartile mean over seeds with its stratified-bootstrap 95% CI" in text
     measured, table = report_output.strip().split("\n\n")  # stdout: what was measured (the budget), then Table 1
     assert measured.startswith("Measured: 30 training runs") and measured in text and table in text
 
@@ -245,7 +251,8 @@ def test_pngs_written(reported, report_output, name):
 
 def test_no_temporary_files_left(reported, report_output):
     _, out = reported
-    assert sorted(p.name for p in out.iterdir()) == ["dataset_sizes.png", "learning_curves.png", "results.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["aggregates.json", "dataset_sizes.png", "learning_curves.png",
+                                                     "performance_profile.png", "results.md"]
 
 
 def test_without_refined_runs_there_is_no_size_figure(tmp_path, capsys):
@@ -255,9 +262,10 @@ def test_without_refined_runs_there_is_no_size_figure(tmp_path, capsys):
     out.mkdir()
     (out / "dataset_sizes.png").write_bytes(PNG_MAGIC)  # stale, from an earlier report
     assert cli_report.run(args(tmp_path / "runs", out=out)) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["learning_curves.png", "results.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["aggregates.json", "learning_curves.png", "performance_profile.png",
+                                                     "results.md"]
     assert "No run trained on refined data" in (out / "results.md").read_text()
-    assert table_rows(capsys.readouterr().out)["door-human"] == ["1.0 ± 1.0"]
+    assert table_rows(capsys.readouterr().out)["door-human"] == ["1.0 ± 1.0 · IQM 1.0 [0.0, 2.0]"]
 
 
 def test_curve_interpolates_seeds_onto_a_common_grid(reported):
@@ -410,7 +418,7 @@ def test_rmrl_report_subcommand(reported, tmp_path, capsys):
 
     root, _ = reported
     assert main(["report", str(root / "relocate-cloned"), "--out", str(tmp_path / "o")]) == 0
-    assert table_rows(capsys.readouterr().out)["relocate-cloned"][-1] == "**492.4 ± 8.0**"
+    assert table_rows(capsys.readouterr().out)["relocate-cloned"][-1] == "**492.4 ± 8.0** · IQM 492.4 [484.4, 500.4]"
     assert main(["report", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
 
 
@@ -421,7 +429,7 @@ def test_one_seed_shows_its_value_alone_never_plus_minus_zero(tmp_path, capsys):
     write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 5.0})
     assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
     out = capsys.readouterr().out
-    assert table_rows(out)["door-human"] == ["2.0", "**5.0**"]
+    assert table_rows(out)["door-human"] == ["2.0 · IQM 2.0 [2.0, 2.0]", "**5.0** · IQM 5.0 [5.0, 5.0]"]  # degenerate CIs
     assert "±" not in out.split("| Dataset |")[1]
     assert "one seed: its value alone" in (tmp_path / "out" / "results.md").read_text()
 
@@ -435,7 +443,7 @@ def test_a_nonfinite_final_evaluation_is_left_out_and_named(tmp_path, capsys, ba
     captured = capsys.readouterr()
     rows = table_rows(captured.out)
     # the two finite seeds: mean 5, sample std 1.4; the BC cell has no finite seed left
-    assert rows["door-human"] == ["non-finite ‡", "5.0 ± 1.4 (n=2) ‡"]
+    assert rows["door-human"] == ["non-finite ‡", "5.0 ± 1.4 · IQM 5.0 [4.0, 6.0] (n=2) ‡"]
     assert "nan" not in captured.out and "inf" not in captured.out
     for name in ("door-human-seed2", "door-human-bc-seed0"):
         line = f"rmrl report: left out of the statistics: {name}: the final evaluation (step 6,000) has score {bad}"

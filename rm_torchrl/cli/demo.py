@@ -75,14 +75,14 @@ def _check_earlier(recipes) -> None:
 def _check_report_dir(report: Path) -> None:
     """``OUT/report`` is the demo's to write only when empty or an earlier demo's report (it has ``demo.md``
     and nothing but what the report writes): a user's own ``report/`` is refused before any training."""
-    from rm_torchrl.cli.report import CURVES, RESULTS as TABLES, SIZES
+    from rm_torchrl.cli.report import AGGREGATES, CURVES, PROFILE, RESULTS as TABLES, SIZES
 
     if not report.exists():
         return
     if not report.is_dir():
         raise RMError(f"{report} exists and is not a directory; give another --out")
     entries = sorted(p.name for p in report.iterdir())
-    foreign = [e for e in entries if e not in (TABLES, CURVES, SIZES, RESULTS)]
+    foreign = [e for e in entries if e not in (TABLES, CURVES, SIZES, AGGREGATES, PROFILE, RESULTS)]
     if foreign or (entries and RESULTS not in entries):
         raise RMError(f"{report} holds files an earlier demo did not write ({', '.join(foreign or entries)}); "
                       "give another --out, or move them away")

@@ -1,8 +1,11 @@
 """``rmrl report RUN_DIR... [--out DIR]``: Table 1, Table 2 and Figure 5 of the paper from training runs.
 
 Writes ``DIR/results.md`` (what was measured, the final scores per dataset x method as mean ± std
-over seeds, or the value alone for one seed, the refinement stage sizes), ``DIR/learning_curves.png`` and, when any run trained
-on refined data, ``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
+over seeds, or the value alone for one seed, and their IQM with its bootstrap CI; the IQMs over datasets
+and the probabilities that Ours improves on each baseline; the refinement stage sizes),
+``DIR/aggregates.json`` (those statistics, for programs), ``DIR/learning_curves.png``,
+``DIR/performance_profile.png`` when any dataset is scored and, when any run trained on refined data,
+``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
 """
 from __future__ import annotations
 
@@ -16,6 +19,8 @@ from rm_torchrl.files import write_atomic
 RESULTS = "results.md"
 CURVES = "learning_curves.png"
 SIZES = "dataset_sizes.png"
+AGGREGATES = "aggregates.json"
+PROFILE = "performance_profile.png"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -27,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="dataset label: the recipe name minus seed and method suffixes (default), "
                         "or the stem of data.source")
     p.add_argument("--decimals", type=int, default=1, help="decimals in Table 1 (default 1)")
+    p.add_argument("--reps", type=int, default=None, metavar="N",
+                   help="bootstrap resamples of the CIs (default 2000; seeded, so a report repeats its CIs)")
     p.add_argument("--gifs", action="store_true",
                    help="render one episode of each run's final policy as a GIF and embed it (MUJOCO_GL=egl "
                         "without a display)")
@@ -39,8 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves
+    from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves, plot_performance_profile
     from rm_torchrl.report.runs import group_runs, load_runs
+    from rm_torchrl.report.stats import REPS, aggregate, write_json
     from rm_torchrl.report.tables import describe, nonfinite_lines, results_markdown, results_table
 
     if args.decimals < 0 or args.decimals > 6:
@@ -54,6 +62,8 @@ def run(args) -> int:
     groups = group_runs(runs)
     for line in nonfinite_lines(groups):
         print(f"rmrl report: left out of the statistics: {line}", file=sys.stderr)
+    reps = getattr(args, "reps", None)  # rmrl demo's Namespace has none
+    stats = aggregate(groups, REPS if reps is None else reps)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise RMError(f"--out {out} exists and is not a directory")
@@ -63,13 +73,19 @@ def run(args) -> int:
         raise RMError(f"cannot create {out}: {err.strerror}") from None
 
     refined = any(r.stages is not None for r in runs)
-    figures = [("Learning curves", CURVES)] + ([("Dataset size after each refinement stage", SIZES)] if refined else [])
+    figures = [("Learning curves", CURVES)] + ([("Performance profile", PROFILE)] if stats.profiles else []) + (
+        [("Dataset size after each refinement stage", SIZES)] if refined else [])
     written = [plot_learning_curves(groups, out / CURVES)]
+    if stats.profiles:
+        written.append(plot_performance_profile(stats, out / PROFILE))
     if refined:
         written.append(plot_dataset_sizes(runs, out / SIZES))
-    elif (out / SIZES).is_file():
-        (out / SIZES).unlink()  # a stale figure from an earlier report of refined runs
-    text = results_markdown(runs, groups, args.decimals, figures, skipped)
+    for name, wanted in ((PROFILE, stats.profiles), (SIZES, refined)):
+        if not wanted and (out / name).is_file():
+            (out / name).unlink()  # a stale figure from an earlier report (of refined or scored runs)
+    write_json(stats, out / AGGREGATES)
+    written.append(out / AGGREGATES)
+    text = results_markdown(runs, groups, args.decimals, figures, skipped, stats)
     gif_error = None
     if getattr(args, "gifs", False):  # callers building their own Namespace (rmrl demo) leave it out
         try:
@@ -79,7 +95,8 @@ def run(args) -> int:
     write_atomic(out / RESULTS, text)
     written.insert(0, out / RESULTS)
 
-    print("\n".join([*describe(runs, groups), "", results_table(groups, args.decimals)]))  # the budget beside the numbers
+    # the budget beside the numbers
+    print("\n".join([*describe(runs, groups, stats), "", results_table(groups, args.decimals, stats)]))
     print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} run{'s' * (len(runs) != 1)})", file=sys.stderr)
     if gif_error is not None:
         raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")

@@ -1,4 +1,4 @@
-"""PNG figures: learning curves like the paper's Figure 5 and the dataset sizes of Table 2.
+"""PNG figures: learning curves like the paper's Figure 5, the dataset sizes of Table 2, the performance profile.
 
 matplotlib is drawn through :class:`matplotlib.figure.Figure` and its Agg canvas directly, never
 through ``pyplot``, so importing this module changes no global backend and opens no window.
@@ -15,6 +15,7 @@ import numpy as np
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.report.runs import OURS, STAGES, Group, Run, datasets, methods
+from rm_torchrl.report.stats import CONFIDENCE, Aggregates
 from rm_torchrl.report.tables import STAGE_LABELS, stage_sizes
 
 #: Fixed colours so a method looks the same in every panel and every report.
@@ -143,6 +144,32 @@ def plot_dataset_sizes(runs: Iterable[Run], path: str | os.PathLike) -> Path:
     ax.grid(True, axis="y", alpha=0.3)
     ax.set_axisbelow(True)
     fig.legend(loc="outside right upper", fontsize=8, frameon=False)
+    return _save(fig, path)
+
+
+def plot_performance_profile(aggregates: Aggregates, path: str | os.PathLike) -> Path:
+    """rliable's performance profile: per method, the fraction of its pooled runs (all datasets of its
+    aggregate) whose final score exceeds each threshold, with the bootstrap CI shaded. A curve above another
+    at every threshold is better everywhere, whatever statistic one would pick."""
+    if not aggregates.profiles:
+        raise RMError("no scored runs to pool for a performance profile")
+    labels = list(aggregates.profiles)
+    colors = method_colors(labels)
+    fig = _figure(figsize=(6.4, 4.2))
+    ax = fig.subplots()
+    runs = {o.method: o.runs * len(o.datasets) for o in aggregates.overall}
+    for m in labels:
+        fraction, lo, hi = aggregates.profiles[m]
+        ax.plot(aggregates.taus, fraction, color=colors[m], lw=2.2 if m == OURS else 1.5,
+                label=f"{m} ({runs[m]} runs)", zorder=3 if m == OURS else 2)
+        ax.fill_between(aggregates.taus, lo, hi, color=colors[m], alpha=0.18, lw=0)
+    ax.set_xlabel("normalised score τ (final evaluation)")
+    ax.set_ylabel("fraction of runs with score > τ")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlim(aggregates.taus[0], aggregates.taus[-1])
+    ax.grid(True, alpha=0.3)
+    ax.legend(frameon=False)
+    ax.set_title(f"Performance profile ({CONFIDENCE:.0%} CI of {aggregates.reps:,} bootstrap resamples)")
     return _save(fig, path)
 
 

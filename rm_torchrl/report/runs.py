@@ -19,7 +19,8 @@ Labels (documented rules, so a table never depends on how a directory happens to
   ``iql`` with ``data.refine: true``, as runs recorded it before);
   otherwise the upper-cased ``method.name`` (``BC``, ``BCQ``, ``IQL``, ``CQL``), with
   `` (refined)`` appended when a baseline was itself trained on refined data, so refined and raw
-  runs never share a column.
+  runs never share a column. :func:`method_option` turns a label back into the recipe option (``ours``,
+  ``iql``) for aggregates.json.
 * **metric** -- the final evaluation's ``score`` column when the recipe sets ``eval.score``
   (the D4RL normalisation), otherwise ``return_mean``.
 """
@@ -93,6 +94,12 @@ def method_label(recipe: dict) -> str:
     if name == "ours" or (refined and name == "iql"):  # runs from before method "ours" had its name
         return OURS
     return name.upper() + (" (refined)" if refined else "")
+
+
+def method_option(label: str) -> str:
+    """The recipe's ``method`` option behind a label, for files read by programs: ``Ours`` -> ``ours``,
+    ``IQL`` -> ``iql``, ``BC (refined)`` -> ``bc-refined`` (kept apart from the raw ``bc``)."""
+    return "ours" if label == OURS else label.lower().replace(" (refined)", "-refined")
 
 
 def method_sort_key(label: str) -> tuple:

@@ -5,12 +5,14 @@ from collections import Counter
 from typing import Iterable, Sequence
 
 from rm_torchrl.run_format import TABLE2_ROWS as STAGE_LABELS
-from rm_torchrl.report.runs import STAGES, Group, Run, datasets, group_runs, methods
+from rm_torchrl.report.runs import OURS, STAGES, Group, Run, datasets, group_runs, methods
+from rm_torchrl.report.stats import CONFIDENCE, SEED, Aggregates, Estimate
 
 MISSING = "–"
 DAGGER = "†"
 DOUBLE_DAGGER = "‡"
 NONFINITE = "non-finite"
+CI = f"{CONFIDENCE:.0%} CI"
 
 
 def _fmt(value: float, decimals: int) -> str:
@@ -26,8 +28,13 @@ def _last_step(groups: Sequence[Group]) -> int:
     return max(step for g in groups for step in g.final_steps)
 
 
-def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
-    """Table 1: rows = datasets, columns = methods, cell = mean ± std over seeds of the final metric.
+def interval(e: Estimate, decimals: int) -> str:
+    return f"{_fmt(e.value, decimals)} [{_fmt(e.lo, decimals)}, {_fmt(e.hi, decimals)}]"
+
+
+def results_table(groups: Iterable[Group], decimals: int = 1, aggregates: Aggregates | None = None) -> str:
+    """Table 1: rows = datasets, columns = methods, cell = mean ± std over seeds of the final metric,
+    followed by ``· IQM x [lo, hi]`` from ``aggregates`` when given.
 
     The std is the sample std (ddof=1); a cell of one seed shows its value alone (one value has no
     spread). Seeds whose final evaluation is nan or inf are left out of the statistics and mark the
@@ -61,6 +68,8 @@ def results_table(groups: Iterable[Group], decimals: int = 1) -> str:
                 text = _fmt(g.mean, decimals) + ("" if g.std is None else f" ± {_fmt(g.std, decimals)}")
                 if best is not None and value == best:
                     text = f"**{text}**"
+                if aggregates is not None:
+                    text += f" · IQM {interval(aggregates.cell(g.dataset, g.method).iqm, decimals)}"
                 if len(g.scored) != usual_n:
                     text += f" (n={len(g.scored)})"
             if min(g.final_steps) < last:
@@ -137,7 +146,7 @@ def _join(items: Sequence) -> str:
     return ", ".join(str(i) for i in items)
 
 
-def describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
+def describe(runs: Sequence[Run], groups: Sequence[Group], aggregates: Aggregates | None = None) -> list[str]:
     seeds = sorted({r.seed for r in runs})
     finals = Counter(r.final_step for r in runs)
     last = max(finals)
@@ -169,23 +178,79 @@ def describe(runs: Sequence[Run], groups: Sequence[Group]) -> list[str]:
     lines.append(f"Cell: mean ± sample std over seeds (one seed: its value alone) of the final evaluation's "
                  f"{' and '.join(what)}; "
                  "the best mean of each dataset is in **bold**. "
-                 "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
+                 + ("" if aggregates is None else iqm_note(aggregates) + " ")
+                 + "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
                  + (" unless marked (refined)." if refined_baselines else "."))
     return lines
 
 
+def _resampling(aggregates: Aggregates) -> str:
+    return f"rliable, {aggregates.reps:,} resamples, seed {SEED}"
+
+
+def iqm_note(aggregates: Aggregates) -> str:
+    """What the ``IQM [lo, hi]`` beside Table 1's means is."""
+    return (f"IQM [lo, hi]: the interquartile mean over seeds with its stratified-bootstrap {CI} "
+            f"({_resampling(aggregates)}; one seed: [x, x], nothing to resample).")
+
+
+def _budget(steps: Sequence[int]) -> str:
+    return _join(f"{s:,}" for s in sorted(set(steps)))
+
+
+def _covered(names: Sequence[str], pool: Sequence[str]) -> str:
+    return f"all {len(pool)}" if list(names) == list(pool) else _join(names)
+
+
+def aggregate_lines(aggregates: Aggregates, decimals: int = 1) -> list[str]:
+    """The "Aggregate" section: each method's IQM over datasets and P(Ours > baseline), with their
+    budgets (runs per dataset, steps, datasets) and what was left out of them (``aggregates.notes``)."""
+    lines = ["## Aggregate over datasets", ""]
+    pool = sorted({d for o in aggregates.overall for d in o.datasets})
+    if not pool:
+        lines += ["No dataset has scores to pool (eval.score is unset, or no run ends at Ours' step).", ""]
+    else:
+        lines += [f"The IQM of the final normalised scores (0–100) over runs and datasets ({len(pool)}: "
+                  f"{_join(pool)}), with its stratified-bootstrap {CI} over runs within each dataset "
+                  f"({_resampling(aggregates)}). Pooled: datasets scored with eval.score, and of each only the "
+                  "runs that end at the step Ours reached there, so that every method is compared at ours' "
+                  "budget; a method covers the datasets it has runs on there.", "",
+                  _row(["Method", f"IQM [{CI}]", "Runs", "Steps", "Datasets"]), "|---|---:|---:|---:|---|"]
+        lines += [_row([o.method, interval(o.iqm, decimals), f"{o.runs} × {len(o.datasets)} "
+                        f"dataset{'s' * (len(o.datasets) != 1)} = {o.runs * len(o.datasets)}",
+                        _budget(o.steps), _covered(o.datasets, pool)]) for o in aggregates.overall]
+        lines.append("")
+    if aggregates.improvement:
+        lines += [f"P({OURS} > Y): over the datasets both have at ours' budget, the chance that a run of {OURS} "
+                  "scores above a run of Y (ties count half) on each, averaged over datasets; "
+                  f"stratified-bootstrap {CI} over the runs of both ({_resampling(aggregates)}).", "",
+                  _row(["Comparison", f"P [{CI}]", f"Runs per dataset ({OURS} / Y)", "Steps", "Datasets"]),
+                  "|---|---:|---:|---:|---|"]
+        lines += [_row([f"{OURS} > {i.y}", f"{i.p.value:.2f} [{i.p.lo:.2f}, {i.p.hi:.2f}]",
+                        f"{i.runs[0]} / {i.runs[1]}",
+                        _budget(i.steps), _covered(i.datasets, pool)]) for i in aggregates.improvement]
+        lines.append("")
+    if aggregates.notes:
+        lines += ["Left out of the aggregates, or cut:", "", *(f"- {n}" for n in aggregates.notes), ""]
+    return lines
+
+
 def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None, decimals: int = 1,
-                     figures: Sequence[tuple[str, str]] = (), skipped: Sequence[str] = ()) -> str:
-    """The whole ``results.md``: what was measured, Table 1, Table 2, links to ``figures``
-    (``(title, relative path)`` pairs) and the runs left out (``skipped``: failed or not yet evaluated)."""
+                     figures: Sequence[tuple[str, str]] = (), skipped: Sequence[str] = (),
+                     aggregates: Aggregates | None = None) -> str:
+    """The whole ``results.md``: what was measured, Table 1 (with the IQMs of ``aggregates`` and its
+    aggregate section when given), Table 2, links to ``figures`` (``(title, relative path)`` pairs) and the
+    runs left out (``skipped``: failed or not yet evaluated)."""
     runs = list(runs)
     groups = list(groups) if groups is not None else group_runs(runs)
-    parts = ["# Results", "", *describe(runs, groups), "",
-             "## Final evaluation (Table 1)", "", results_table(groups, decimals), ""]
+    parts = ["# Results", "", *describe(runs, groups, aggregates), "",
+             "## Final evaluation (Table 1)", "", results_table(groups, decimals, aggregates), ""]
     left_out = nonfinite_lines(groups)
     if left_out:
         parts += [f"{DOUBLE_DAGGER} Left out of the statistics: the final evaluation is not a number.", "",
                   *(f"- {line}" for line in left_out), ""]
+    if aggregates is not None:
+        parts += aggregate_lines(aggregates, decimals)
     table2 = stages_table(runs)
     parts += ["## Dataset size after each refinement stage (Table 2)", ""]
     if table2:

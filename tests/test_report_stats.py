@@ -1,0 +1,222 @@
+"""``rmrl report``'s rliable statistics: IQMs with bootstrap CIs per Table 1 cell and over datasets, P(Ours >
+baseline), ``aggregates.json`` and ``performance_profile.png``, from fake run directories of known final scores."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rm_torchrl.cli import report as cli_report
+from rm_torchrl.report import group_runs, load_runs
+from rm_torchrl.report.stats import REPS, aggregate, improvement, iqm
+from test_report import PNG_MAGIC, table_rows, write_run
+
+pytest.importorskip("matplotlib")
+metrics = pytest.importorskip("rliable.metrics")
+
+ROOT = Path(__file__).resolve().parent.parent
+KEYS = {"metric", "confidence", "reps", "cells", "overall", "probability_of_improvement"}
+
+
+def runs(root: Path, dataset: str, method: str, finals, score: str = "door", step: int = 6000) -> None:
+    """A run per seed 0, 1, ... of ``method`` on ``dataset``, its last evaluation (at ``step``) ``finals[seed]``."""
+    name = dataset if method == "ours" else f"{dataset}-{method}"
+    for seed, value in enumerate(finals):
+        write_run(root, name, seed, method, method == "ours", score, {2000: 0.0, step: float(value)})
+
+
+def report(root: Path, out: Path, *extra: str) -> dict:
+    assert cli_report.main([str(root), "--out", str(out), *extra]) == 0
+    return json.loads((out / "aggregates.json").read_text())
+
+
+def by(entries: list[dict], key: str = "method") -> dict:
+    return {e[key]: e for e in entries}
+
+
+# --- the estimators against rliable's own ----------------------------------------------------
+
+@pytest.mark.parametrize("n", range(1, 10))
+def test_iqm_is_rliables_aggregate_iqm(n):
+    scores = np.random.default_rng(n).normal(size=(n, 4))
+    assert iqm(scores) == pytest.approx([metrics.aggregate_iqm(scores[:, j]) for j in range(4)])
+    assert iqm(scores.reshape(-1, 1))[0] == pytest.approx(metrics.aggregate_iqm(scores))
+
+
+@pytest.mark.parametrize("nx, ny, tasks, levels", [(3, 3, 1, 3), (3, 5, 4, 4), (5, 2, 6, 100), (1, 1, 2, 2)])
+def test_improvement_is_rliables_probability_of_improvement(nx, ny, tasks, levels):
+    rng = np.random.default_rng(nx * 100 + ny)
+    x, y = rng.integers(0, levels, (nx, tasks)).astype(float), rng.integers(0, levels, (ny, tasks)).astype(float)
+    assert improvement(x, y)[0] == pytest.approx(metrics.probability_of_improvement(x, y))  # ties count half
+    assert improvement(x, x)[0] == pytest.approx(0.5)
+
+
+def test_iqm_of_one_to_four():
+    assert iqm(np.array([[1.0], [2.0], [3.0], [4.0]]))[0] == 2.5
+
+
+# --- the report ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_datasets(tmp_path_factory):
+    """Ours above IQL everywhere, BC with one run; CQL trained for fewer steps; a return_mean dataset."""
+    root = tmp_path_factory.mktemp("runs")
+    runs(root, "door-human", "ours", [1, 2, 3, 4])
+    runs(root, "door-human", "iql", [0.1, 0.2, 0.3])
+    runs(root, "door-human", "bc", [7])
+    runs(root, "door-human", "cql", [50, 60, 70], step=4000)
+    runs(root, "kitchen-partial", "ours", [50, 75, 25], score="kitchen")  # so door-human's seed 3 is cut
+    runs(root, "kitchen-partial", "iql", [0, 0, 25], score="kitchen")
+    runs(root, "relocate", "ours", [5000, 6000], score="")
+    out = tmp_path_factory.mktemp("out") / "report"
+    return root, out, report(root, out)
+
+
+def test_aggregates_json_shape_and_recipe_method_names(two_datasets):
+    _, _, agg = two_datasets
+    assert KEYS <= set(agg) and agg["metric"] == "final_score" and agg["confidence"] == 0.95 and agg["reps"] == REPS
+    assert {c["method"] for c in agg["cells"]} == {"ours", "iql", "bc", "cql"}
+    for entry in agg["cells"]:
+        assert {"dataset", "method", "runs", "iqm", "ci"} <= set(entry) and len(entry["ci"]) == 2
+    for entry in agg["overall"]:
+        assert {"method", "iqm", "ci"} <= set(entry)
+    for entry in agg["probability_of_improvement"]:
+        assert {"x", "y", "p", "ci"} <= set(entry) and entry["x"] == "ours"
+
+
+def test_cell_iqms_and_a_single_run_has_a_degenerate_ci(two_datasets):
+    _, out, agg = two_datasets
+    door = by([c for c in agg["cells"] if c["dataset"] == "door-human"])
+    assert door["ours"]["runs"] == 4 and door["ours"]["iqm"] == 2.5
+    assert 1.0 <= door["ours"]["ci"][0] < 2.5 < door["ours"]["ci"][1] <= 4.0
+    assert door["bc"]["runs"] == 1 and door["bc"]["iqm"] == 7.0 and door["bc"]["ci"] == [7.0, 7.0]
+    assert door["cql"]["steps"] == 4000 and door["ours"]["steps"] == 6000
+    relocate = by([c for c in agg["cells"] if c["dataset"] == "relocate"])
+    assert relocate["ours"]["column"] == "return_mean" and relocate["ours"]["iqm"] == 5500.0
+    text = (out / "results.md").read_text()
+    assert table_rows(text)["door-human"][0] == "7.0 · IQM 7.0 [7.0, 7.0] (n=1)"
+    assert "one seed: [x, x], nothing to resample" in text
+
+
+def test_overall_pools_scored_datasets_at_ours_budget_on_the_fewest_seeds(two_datasets):
+    _, out, agg = two_datasets
+    overall = by(agg["overall"])
+    assert set(overall) == {"ours", "iql", "bc"}  # CQL stopped at step 4,000, ours at 6,000
+    assert overall["ours"]["datasets"] == ["door-human", "kitchen-partial"] and overall["ours"]["runs_per_dataset"] == 3
+    # door-human's seeds 0-2 and kitchen-partial's (1, 2, 3, 25, 50, 75): the middle four
+    assert overall["ours"]["iqm"] == pytest.approx((2 + 3 + 25 + 50) / 4)
+    assert overall["bc"]["datasets"] == ["door-human"] and overall["bc"]["ci"] == [7.0, 7.0]
+    text = (out / "results.md").read_text()
+    assert "## Aggregate over datasets" in text
+    assert table_rows(text)["Ours"][1:] == ["3 × 2 datasets = 6", "6,000", "all 2"]
+    assert table_rows(text)["BC"][1:] == ["1 × 1 dataset = 1", "6,000", "door-human"]
+    assert "- CQL on door-human: 3 runs end at step 4,000, Ours there at 6,000: not in the aggregates" in text
+    assert "- relocate: measured as return_mean (eval.score unset)" in text
+    assert "- Ours: the aggregate takes the 3 lowest seeds of each dataset (door-human has 4)" in text
+    assert "- BC: one run per dataset: nothing to resample, its CI is [x, x]" in text
+
+
+def test_probability_of_improvement_over_the_datasets_both_have(two_datasets):
+    _, out, agg = two_datasets
+    better = by(agg["probability_of_improvement"], "y")
+    assert set(better) == {"iql", "bc"}
+    # door-human: 1, 2, 3 all above IQL's; kitchen-partial: 50, 75, 25 against 0, 0, 25 -> 8.5 of 9 pairs
+    assert better["iql"]["p"] == pytest.approx((1 + 8.5 / 9) / 2)
+    assert better["iql"]["datasets"] == ["door-human", "kitchen-partial"]
+    assert better["iql"]["runs_per_dataset"] == {"x": 3, "y": 3}
+    assert better["bc"]["p"] == 0.0 and better["bc"]["ci"] == [0.0, 0.0]  # BC's 7 beats 1, 2, 3, 4
+    assert "| Ours > BC | 0.00 [0.00, 0.00] | 4 / 1 | 6,000 | door-human |" in (out / "results.md").read_text()
+
+
+@pytest.mark.parametrize("ours, other, p", [([50, 60, 70], [1, 2, 3], 1.0), ([5, 5, 5], [5, 5, 5], 0.5),
+                                            ([1, 2, 3], [4, 5, 6], 0.0)])
+def test_probability_of_improvement_dominance(tmp_path, ours, other, p):
+    for dataset, score in (("door-human", "door"), ("kitchen-partial", "kitchen")):
+        runs(tmp_path / "runs", dataset, "ours", ours, score=score)
+        runs(tmp_path / "runs", dataset, "iql", other, score=score)
+    (entry,) = report(tmp_path / "runs", tmp_path / "out", "--reps", "200")["probability_of_improvement"]
+    assert (entry["x"], entry["y"], entry["p"], entry["ci"]) == ("ours", "iql", p, [p, p])
+
+
+def test_performance_profile_png_and_link(two_datasets):
+    _, out, _ = two_datasets
+    data = (out / "performance_profile.png").read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 5000
+    assert "![Performance profile](performance_profile.png)" in (out / "results.md").read_text()
+
+
+def test_same_runs_same_cis_and_the_global_generator_is_left_alone(two_datasets):
+    root, _, agg = two_datasets
+    np.random.seed(123)
+    expected = np.random.random()
+    np.random.seed(123)
+    again = aggregate(group_runs(load_runs([root])))
+    assert np.random.random() == expected
+    assert json.loads(json.dumps(again.to_json())) == agg
+
+
+def test_reps_option(tmp_path, capsys):
+    runs(tmp_path / "runs", "door-human", "ours", [1, 2, 3])
+    assert report(tmp_path / "runs", tmp_path / "out", "--reps", "50")["reps"] == 50
+    assert "rliable, 50 resamples, seed 0" in (tmp_path / "out" / "results.md").read_text()
+    assert cli_report.build_parser().parse_args(["x"]).reps is None  # the default: stats.REPS
+    capsys.readouterr()
+    assert cli_report.main([str(tmp_path / "runs"), "--out", str(tmp_path / "o"), "--reps", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["rmrl report: error: --reps must be a positive number of bootstrap resamples, got 0"]
+    assert not (tmp_path / "o").exists()
+
+
+def test_without_a_scored_dataset_there_is_nothing_to_pool(tmp_path):
+    runs(tmp_path / "runs", "relocate", "ours", [1, 2, 3], score="")
+    runs(tmp_path / "runs", "relocate", "bc", [0, 1, 2], score="")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "performance_profile.png").write_bytes(PNG_MAGIC)  # stale, from an earlier report
+    agg = report(tmp_path / "runs", out)
+    assert agg["overall"] == [] and agg["probability_of_improvement"] == [] and len(agg["cells"]) == 2
+    assert not (out / "performance_profile.png").exists()
+    text = (out / "results.md").read_text()
+    assert "No dataset has scores to pool" in text and "performance_profile.png" not in text
+
+
+def test_nonfinite_runs_stay_out_of_the_json(tmp_path):
+    runs(tmp_path / "runs", "door-human", "ours", [1, 2, float("nan")])
+    runs(tmp_path / "runs", "door-human", "bc", [float("inf")])
+    agg = report(tmp_path / "runs", tmp_path / "out")
+    text = (tmp_path / "out" / "aggregates.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert [(c["method"], c["runs"], c["iqm"]) for c in agg["cells"]] == [("ours", 2, 1.5)]
+
+
+def test_demo_accepts_the_files_its_report_writes(tmp_path):
+    from rm_torchrl.cli.demo import _check_report_dir
+
+    for name in ("results.md", "demo.md", "learning_curves.png", "aggregates.json", "performance_profile.png"):
+        (tmp_path / name).write_text("")
+    _check_report_dir(tmp_path)
+
+
+def test_table1_benchmark_report(tmp_path):
+    """``benchmarks/table1.py report`` on its own layout: the IQM column, the aggregate section and its files."""
+    results = tmp_path / "results"
+    for method, finals in (("ours", [30, 40, 50]), ("iql", [1, 2, 3]), ("bc", [0, 1, 2])):
+        runs(results / "runs", "door-human-v0", method, finals, step=50_000)
+    runs(results / "runs", "door-human-v0", "cql", [60, 70, 80], step=10_000)
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "table1.py"), "report", "--out",
+                           str(tmp_path / "none"), "--results", str(results), "--reps", "300"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    agg = json.loads((results / "aggregates.json").read_text())
+    assert agg["reps"] == 300 and {o["method"] for o in agg["overall"]} == {"ours", "iql", "bc"}
+    assert by(agg["probability_of_improvement"], "y")["iql"]["p"] == 1.0
+    text = (results / "results.md").read_text()
+    assert "final score IQM [95% CI]" in text
+    assert "| door-human-v0 | Ours | 50k × 3 | 40.0 ± 10.0 | 40.0 [30.0, 50.0] |" in text
+    assert "## Aggregate over datasets" in text and "| Ours > IQL | 1.00 [1.00, 1.00] |" in text
+    assert "- CQL on door-human-v0: 3 runs end at step 10,000, Ours there at 50,000" in text
+    assert (results / "performance_profile.png").read_bytes()[:8] == PNG_MAGIC
