@@ -407,7 +407,8 @@ def test_bad_arguments():
 
 
 def test_recipe_build_method():
-    from rm_torchrl.train.config import BCQConfig, MethodConfig, Recipe
+    from rm_torchrl.methods.config import BCQConfig, MethodConfig
+    from rm_torchrl.train.config import Recipe
     from rm_torchrl.train.methods import METHODS, build_method
 
     recipe = Recipe(method=MethodConfig(name="bcq", bcq=BCQConfig(lmbda=0.5, phi=0.1, vae_hidden=[32, 32])))

@@ -10,7 +10,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule, SoftUpdate
 
-from rm_torchrl.train.config import OptimConfig
+from rm_torchrl.methods.config import OptimConfig
 from rm_torchrl.train.method import Method
 
 

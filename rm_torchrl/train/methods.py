@@ -23,7 +23,8 @@ from torchrl.objectives import CQLLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
 from rm_torchrl.train.bcq import make_bcq_loss, make_bcq_optimizers
-from rm_torchrl.train.config import METHOD_SECTIONS, Recipe
+from rm_torchrl.methods.config import METHOD_SECTIONS
+from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.iql import SharedForwardIQLLoss
 from rm_torchrl.train.losses import ActorSchedule, BCLoss, ForeachSoftUpdate, adam
 from rm_torchrl.train.method import Method
