@@ -38,7 +38,8 @@ def diagnose(run_dir: Path, overrides: list[str] = ()) -> dict:
     recipe = load_recipe(run_dir / "recipe.yaml", list(overrides))
     state = load_checkpoint(run_dir / "checkpoint.pt")
     data = prepare_data(recipe)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim)
     method.loss.load_state_dict(state["loss"])
     loss, beta = method.loss, recipe.method.iql.temperature
     td = data.transitions

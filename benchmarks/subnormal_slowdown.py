@@ -38,7 +38,8 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
     recipe = load_recipe(ROOT / "recipes" / "door-human-v0-ours.yaml",
                          [f"data.source={source}", f"trainer.steps={steps}", "trainer.compile=false"])
     data = prepare_data(recipe)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim)
     g = torch.Generator().manual_seed(0)
     seconds = []
     for start in range(0, steps, window):

@@ -77,7 +77,8 @@ def ours(data: TensorDict):
     recipe = Recipe()
     recipe.method.iql.actor_dropout = 0.0  # same networks as the baseline
     training = _training_data(data)
-    method = compile_method(build_method(recipe, training.obs_keys, OBS, ACT))  # as trainer.compile=true
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys, OBS, ACT)
+    compile_method(method)  # as trainer.compile=true
     terms = METHODS["iql"].terms
     g = torch.Generator().manual_seed(0)
     return lambda: gradient_step(method, terms, training.sample(BATCH, g))
@@ -125,7 +126,8 @@ def _peak_memory_child(path: str, refine: bool) -> None:
     recipe.data.source, recipe.data.refine, recipe.data.events, recipe.data.alpha = path, refine, "door", 0.5
     recipe.data.episode_ends = "timeouts"
     training = prepare_data(recipe)
-    method = build_method(recipe, training.obs_keys, training.obs_dim, training.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys,
+                          training.obs_dim, training.action_dim)
     g = torch.Generator().manual_seed(0)
     for _ in range(50):
         gradient_step(method, METHODS["iql"].terms, training.sample(BATCH, g))

@@ -416,7 +416,7 @@ def test_recipe_build_method():
     recipe.network.hidden = [24, 16]
     recipe.optim.lr_actor, recipe.optim.lr_critic, recipe.optim.lr_value = 1e-3, 2e-3, 3e-3
     keys, widths = LAYOUTS["two_keys"]
-    method = build_method(recipe, keys, sum(widths.values()), ACT)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, keys, sum(widths.values()), ACT)
     loss = method.loss
     assert isinstance(loss, BCQLoss) and loss.lmbda == 0.5 and loss.actor_network.phi == 0.1
     assert float(loss.value_estimator.gamma) == pytest.approx(0.95)

@@ -3,12 +3,13 @@
 These are typed OmegaConf structured configs, like the rest of the recipe schema
 (:mod:`rm_torchrl.train.config`), which holds them as its ``method``, ``network`` and ``optim`` sections. The
 method section holds one sub-section per method family (``method.iql``, ``method.cql``, ``method.bcq``); a
-run uses the one its ``method.name`` names (:data:`METHOD_SECTIONS`).
+run uses the one its ``method.name`` names (:data:`METHOD_SECTIONS`). Of the ``trainer`` section the
+methods read three entries alone (:class:`TrainerSection`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List
+from typing import List, Protocol
 
 #: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
 #: on the refined data with the RM state as policy input; the others are the paper's baselines.
@@ -72,3 +73,11 @@ class OptimConfig:
     decay: str = "l2"  # l2: the paper's penalty lambda*||w||^2 (Adam weight_decay = 2 lambda); decoupled: AdamW
     fused: bool = True
     actor_schedule: str = "constant"  # constant | cosine: the actor's lr annealed to 0 over trainer.steps (IQL authors, CORL)
+
+
+class TrainerSection(Protocol):
+    """What the methods read of the recipe's ``trainer`` section (``rm_torchrl.train.config.TrainerConfig``)."""
+
+    gamma: float  # discount of the TD targets
+    tau: float  # rate of the soft update of the target networks
+    steps: int  # updates in the run: the length of the actor's schedule under optim.actor_schedule=cosine

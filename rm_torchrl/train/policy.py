@@ -112,7 +112,8 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     probe.close()
     inputs = PolicyInput(obs_keys, obs_dim, action_dim, loc, scale, events)
     target = resolve_device(device, "device")
-    method = build_method(recipe, obs_keys, obs_dim, action_dim, target)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, obs_keys, obs_dim, action_dim,
+                          target)
     try:
         method.loss.load_state_dict(state["loss"])
     except RuntimeError as err:

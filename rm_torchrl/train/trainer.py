@@ -225,7 +225,8 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
     # --- data and model ---------------------------------------------------------------------
     device = resolve_device(recipe.trainer.device)
     data = prepare_data(recipe, device)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim, device)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim, device)
     if recipe.trainer.compile:
         compile_method(method)
     terms = METHODS[recipe.method.name].terms
