@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from rm_torchrl.rm.machine import EventOrderedRM  # noqa: E402
 from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 from rm_torchrl.train.data import ENCODING_KEY, prepare_data  # noqa: E402
-from rm_torchrl.train.methods import build_method  # noqa: E402
+from rm_torchrl.methods.registry import build_method  # noqa: E402
 from rm_torchrl.train.rundir import load_checkpoint  # noqa: E402
 
 

@@ -1,4 +1,4 @@
-"""BCQ (Fujimoto et al. 2019) as a TorchRL LossModule: rm_torchrl.train.bcq."""
+"""BCQ (Fujimoto et al. 2019) as a TorchRL LossModule: rm_torchrl.methods.bcq."""
 from __future__ import annotations
 
 import warnings
@@ -12,7 +12,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from rm_torchrl.train.bcq import (
+from rm_torchrl.methods.bcq import (
     BCQCritic,
     BCQLoss,
     BCQPerturbation,
@@ -409,7 +409,7 @@ def test_bad_arguments():
 def test_recipe_build_method():
     from rm_torchrl.methods.config import BCQConfig, MethodConfig
     from rm_torchrl.train.config import Recipe
-    from rm_torchrl.train.methods import METHODS, build_method
+    from rm_torchrl.methods.registry import METHODS, build_method
 
     recipe = Recipe(method=MethodConfig(name="bcq", bcq=BCQConfig(lmbda=0.5, phi=0.1, vae_hidden=[32, 32])))
     recipe.trainer.gamma = 0.95

@@ -265,8 +265,8 @@ def test_subnormals_are_flushed_unless_told_not_to(tmp_path, dataset, flush):
 
 def test_cosine_actor_schedule(tmp_path, dataset):
     """The actor's lr falls from its recipe value to ~0 over the run; the critics' stays."""
-    from rm_torchrl.train.losses import ActorSchedule
-    from rm_torchrl.train.methods import build_method
+    from rm_torchrl.methods.losses import ActorSchedule
+    from rm_torchrl.methods.registry import build_method
 
     recipe = load_recipe(make_recipe(tmp_path, dataset), ["optim.actor_schedule=cosine", "optim.lr_actor=1.0e-3",
                                                           "trainer.steps=40", "trainer.checkpoint_every=20"])
@@ -330,8 +330,8 @@ def test_compiled_loss_matches_eager():
     from tensordict import TensorDict
 
     from rm_torchrl.train.config import Recipe
-    from rm_torchrl.train.losses import compile_method
-    from rm_torchrl.train.methods import build_method
+    from rm_torchrl.methods.losses import compile_method
+    from rm_torchrl.methods.registry import build_method
 
     torch.manual_seed(0)
     recipe = Recipe()

@@ -14,7 +14,7 @@ from typing import List, Protocol
 #: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
 #: on the refined data with the RM state as policy input; the others are the paper's baselines.
 METHOD_SECTIONS = {"ours": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
-ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.train.networks.make_actor
+ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
 
 
 @dataclass

@@ -28,7 +28,7 @@ from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
 from rm_torchrl.train.config import Recipe, check_seed
 from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
-from rm_torchrl.train.methods import build_method
+from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint
 from rm_torchrl.train.trainer import resolve_device

@@ -1,7 +1,7 @@
 """The methods a recipe can name, in one registry: each one's loss, optimisers, policy and loss terms.
 
 ``build_method(method, network, optim, trainer, obs_keys, obs_dim, action_dim, device)`` returns a
-:class:`~rm_torchrl.train.method.Method` whose loss sits on ``device`` (networks are moved
+:class:`~rm_torchrl.methods.method.Method` whose loss sits on ``device`` (networks are moved
 there before the loss is built, so the evaluation policy shares the loss's parameters); ``METHODS[name].terms``
 are the loss entries summed into the objective. It takes the recipe sections it reads and no more: the
 method's own section (``method.iql`` and so on, picked by ``method.name``), ``network``, ``optim`` and of
@@ -24,13 +24,13 @@ import torch
 from torchrl.objectives import CQLLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from rm_torchrl.train.bcq import make_bcq_loss, make_bcq_optimizers
+from rm_torchrl.methods.bcq import make_bcq_loss, make_bcq_optimizers
 from rm_torchrl.methods.config import (METHOD_SECTIONS, BCQConfig, CQLConfig, IQLConfig, MethodConfig, NetworkConfig,
                                        OptimConfig, TrainerSection)
-from rm_torchrl.train.iql import SharedForwardIQLLoss
-from rm_torchrl.train.losses import ActorSchedule, BCLoss, ForeachSoftUpdate, adam
-from rm_torchrl.train.method import Method
-from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
+from rm_torchrl.methods.iql import SharedForwardIQLLoss
+from rm_torchrl.methods.losses import ActorSchedule, BCLoss, ForeachSoftUpdate, adam
+from rm_torchrl.methods.method import Method
+from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 
 
 @dataclass(frozen=True)
