@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from rm_torchrl.rm.machine import EventOrderedRM  # noqa: E402
 from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 from rm_torchrl.train.data import ENCODING_KEY, prepare_data  # noqa: E402
-from rm_torchrl.train.methods import build_method  # noqa: E402
+from rm_torchrl.methods.registry import build_method  # noqa: E402
 from rm_torchrl.train.rundir import load_checkpoint  # noqa: E402
 
 
@@ -38,7 +38,8 @@ def diagnose(run_dir: Path, overrides: list[str] = ()) -> dict:
     recipe = load_recipe(run_dir / "recipe.yaml", list(overrides))
     state = load_checkpoint(run_dir / "checkpoint.pt")
     data = prepare_data(recipe)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim)
     method.loss.load_state_dict(state["loss"])
     loss, beta = method.loss, recipe.method.iql.temperature
     td = data.transitions

@@ -29,7 +29,7 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
 
     from rm_torchrl.train.recipe import load_recipe
     from rm_torchrl.train.data import prepare_data
-    from rm_torchrl.train.methods import METHODS, build_method
+    from rm_torchrl.methods.registry import METHODS, build_method
     from rm_torchrl.train.trainer import gradient_step
 
     torch.set_num_threads(1)
@@ -38,7 +38,8 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
     recipe = load_recipe(ROOT / "recipes" / "door-human-v0-ours.yaml",
                          [f"data.source={source}", f"trainer.steps={steps}", "trainer.compile=false"])
     data = prepare_data(recipe)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim)
     g = torch.Generator().manual_seed(0)
     seconds = []
     for start in range(0, steps, window):

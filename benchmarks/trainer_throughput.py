@@ -23,11 +23,11 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import IQLLoss, SoftUpdate
 
+from rm_torchrl.methods.losses import compile_method
+from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
+from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import TrainingData, prepare_data
-from rm_torchrl.train.losses import compile_method
-from rm_torchrl.train.methods import METHODS, build_method
-from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
 from rm_torchrl.train.trainer import gradient_step
 
 OBS, ACT, HIDDEN, BATCH = 60, 9, [256, 256], 256
@@ -77,7 +77,8 @@ def ours(data: TensorDict):
     recipe = Recipe()
     recipe.method.iql.actor_dropout = 0.0  # same networks as the baseline
     training = _training_data(data)
-    method = compile_method(build_method(recipe, training.obs_keys, OBS, ACT))  # as trainer.compile=true
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys, OBS, ACT)
+    compile_method(method)  # as trainer.compile=true
     terms = METHODS["iql"].terms
     g = torch.Generator().manual_seed(0)
     return lambda: gradient_step(method, terms, training.sample(BATCH, g))
@@ -125,7 +126,8 @@ def _peak_memory_child(path: str, refine: bool) -> None:
     recipe.data.source, recipe.data.refine, recipe.data.events, recipe.data.alpha = path, refine, "door", 0.5
     recipe.data.episode_ends = "timeouts"
     training = prepare_data(recipe)
-    method = build_method(recipe, training.obs_keys, training.obs_dim, training.action_dim)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys,
+                          training.obs_dim, training.action_dim)
     g = torch.Generator().manual_seed(0)
     for _ in range(50):
         gradient_step(method, METHODS["iql"].terms, training.sample(BATCH, g))

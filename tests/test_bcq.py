@@ -1,4 +1,4 @@
-"""BCQ (Fujimoto et al. 2019) as a TorchRL LossModule: rm_torchrl.train.bcq."""
+"""BCQ (Fujimoto et al. 2019) as a TorchRL LossModule: rm_torchrl.methods.bcq."""
 from __future__ import annotations
 
 import warnings
@@ -12,7 +12,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from rm_torchrl.train.bcq import (
+from rm_torchrl.methods.bcq import (
     BCQCritic,
     BCQLoss,
     BCQPerturbation,
@@ -407,15 +407,16 @@ def test_bad_arguments():
 
 
 def test_recipe_build_method():
-    from rm_torchrl.train.config import BCQConfig, MethodConfig, Recipe
-    from rm_torchrl.train.methods import METHODS, build_method
+    from rm_torchrl.methods.config import BCQConfig, MethodConfig
+    from rm_torchrl.train.config import Recipe
+    from rm_torchrl.methods.registry import METHODS, build_method
 
     recipe = Recipe(method=MethodConfig(name="bcq", bcq=BCQConfig(lmbda=0.5, phi=0.1, vae_hidden=[32, 32])))
     recipe.trainer.gamma = 0.95
     recipe.network.hidden = [24, 16]
     recipe.optim.lr_actor, recipe.optim.lr_critic, recipe.optim.lr_value = 1e-3, 2e-3, 3e-3
     keys, widths = LAYOUTS["two_keys"]
-    method = build_method(recipe, keys, sum(widths.values()), ACT)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, keys, sum(widths.values()), ACT)
     loss = method.loss
     assert isinstance(loss, BCQLoss) and loss.lmbda == 0.5 and loss.actor_network.phi == 0.1
     assert float(loss.value_estimator.gamma) == pytest.approx(0.95)

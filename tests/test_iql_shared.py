@@ -8,9 +8,9 @@ from torch import nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, ValueEstimators
 
-from rm_torchrl.train.iql import SharedForwardIQLLoss
-from rm_torchrl.train.losses import ForeachSoftUpdate
-from rm_torchrl.train.networks import make_actor, make_qvalue, make_value
+from rm_torchrl.methods.iql import SharedForwardIQLLoss
+from rm_torchrl.methods.losses import ForeachSoftUpdate
+from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 
 OBS, ENC, ACT = 7, 3, 2
 

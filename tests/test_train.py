@@ -265,8 +265,8 @@ def test_subnormals_are_flushed_unless_told_not_to(tmp_path, dataset, flush):
 
 def test_cosine_actor_schedule(tmp_path, dataset):
     """The actor's lr falls from its recipe value to ~0 over the run; the critics' stays."""
-    from rm_torchrl.train.losses import ActorSchedule
-    from rm_torchrl.train.methods import build_method
+    from rm_torchrl.methods.losses import ActorSchedule
+    from rm_torchrl.methods.registry import build_method
 
     recipe = load_recipe(make_recipe(tmp_path, dataset), ["optim.actor_schedule=cosine", "optim.lr_actor=1.0e-3",
                                                           "trainer.steps=40", "trainer.checkpoint_every=20"])
@@ -277,7 +277,8 @@ def test_cosine_actor_schedule(tmp_path, dataset):
     assert critic_lrs == [3e-4, 3e-4]
 
     for name in ("iql", "bc", "cql", "bcq"):  # every method's actor, and only it, is annealed
-        method = build_method(load_recipe(make_recipe(tmp_path, dataset), [f"method.name={name}"]), ["observation"], 5, 2)
+        r = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={name}"])
+        method = build_method(r.method, r.network, r.optim, r.trainer, ["observation"], 5, 2)
         schedule = ActorSchedule(method, total=10)
         groups = [g for opt in method.optimizers for g in opt.param_groups]
         others = [(g, g["lr"]) for g in groups if all(g is not s for s in schedule.groups)]
@@ -329,13 +330,13 @@ def test_compiled_loss_matches_eager():
     from tensordict import TensorDict
 
     from rm_torchrl.train.config import Recipe
-    from rm_torchrl.train.losses import compile_method
-    from rm_torchrl.train.methods import build_method
+    from rm_torchrl.methods.losses import compile_method
+    from rm_torchrl.methods.registry import build_method
 
     torch.manual_seed(0)
     recipe = Recipe()
     recipe.network.hidden, recipe.method.iql.actor_dropout = [16, 16], 0.0
-    method = build_method(recipe, ["observation"], 7, 2)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, ["observation"], 7, 2)
     n = 32
     batch = TensorDict({
         "observation": torch.randn(n, 7), "action": torch.rand(n, 2) * 1.8 - 0.9,

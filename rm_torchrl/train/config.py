@@ -3,9 +3,11 @@
 A recipe is composed by Hydra (:mod:`rm_torchrl.train.recipe`) from a dataset option
 (``recipes/dataset/*.yaml``: data and evaluation) and a method option (``recipes/method/*.yaml``:
 the method's own section, networks and optimisers), then checked against these classes: unknown
-keys and ill-typed values are refused with the path of the entry. The method section holds one
-sub-section per method family (``method.iql``, ``method.cql``, ``method.bcq``); a run uses the one
-its ``method.name`` names and its resolved ``recipe.yaml`` keeps only that one.
+keys and ill-typed values are refused with the path of the entry. The sections the methods read
+(``method``, ``network``, ``optim``) are defined with the methods, in :mod:`rm_torchrl.methods.config`.
+The method section holds one sub-section per method family (``method.iql``, ``method.cql``,
+``method.bcq``); a run uses the one its ``method.name`` names and its resolved ``recipe.yaml`` keeps
+only that one.
 """
 from __future__ import annotations
 
@@ -16,11 +18,8 @@ from typing import Any, Dict, List
 from omegaconf import OmegaConf
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.methods.config import ACTORS, METHOD_SECTIONS, MethodConfig, NetworkConfig, OptimConfig
 
-#: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
-#: on the refined data with the RM state as policy input; the others are the paper's baselines.
-METHOD_SECTIONS = {"ours": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
-ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.train.networks.make_actor
 DEVICES = "auto | cpu | cuda | cuda:N"
 
 #: Entries that take one of a few values (checked after composition, with the valid ones named).
@@ -76,64 +75,6 @@ class DataConfig:
 @dataclass
 class RMConfig:
     encoding: str = "one_hot"  # what the policy sees of the RM state: one_hot | slots
-
-
-@dataclass
-class IQLConfig:
-    """IQL (Kostrikov et al. 2021), used by ``ours`` and ``iql``."""
-
-    expectile: float = 0.7  # tau
-    temperature: float = 0.5  # inverse temperature beta of the advantage weights
-    actor_dropout: float = 0.1  # the IQL authors' actor dropout on Adroit and kitchen
-
-
-@dataclass
-class CQLConfig:
-    """CQL (Kumar et al. 2020)."""
-
-    min_q_weight: float = 5.0  # Adroit and kitchen
-    num_random: int = 10  # random actions per state in the log-sum-exp
-
-
-@dataclass
-class BCQConfig:
-    """BCQ (Fujimoto et al. 2019)."""
-
-    lmbda: float = 0.75  # soft clipped double-Q
-    phi: float = 0.05  # perturbation range
-    vae_hidden: List[int] = field(default_factory=lambda: [750, 750])
-
-
-@dataclass
-class MethodConfig:
-    name: str = "iql"  # ours | iql | bc | cql | bcq
-    iql: IQLConfig = field(default_factory=IQLConfig)
-    cql: CQLConfig = field(default_factory=CQLConfig)
-    bcq: BCQConfig = field(default_factory=BCQConfig)
-
-    @property
-    def section(self):
-        """This method's own parameters (None for BC)."""
-        name = METHOD_SECTIONS.get(self.name)
-        return None if name is None else getattr(self, name)
-
-
-@dataclass
-class NetworkConfig:
-    hidden: List[int] = field(default_factory=lambda: [256, 256])
-    actor: str = "tanh_normal"  # tanh_normal | gaussian (tanh mean, state-independent std: the IQL authors')
-
-
-@dataclass
-class OptimConfig:
-    lr_actor: float = 3e-4
-    lr_critic: float = 3e-4
-    lr_value: float = 3e-4
-    weight_decay_q: float = 1e-4  # lambda_Q of eq. 7, on the Q and value networks
-    weight_decay_pi: float = 1e-4  # lambda_pi of eq. 8, on the policy
-    decay: str = "l2"  # l2: the paper's penalty lambda*||w||^2 (Adam weight_decay = 2 lambda); decoupled: AdamW
-    fused: bool = True
-    actor_schedule: str = "constant"  # constant | cosine: the actor's lr annealed to 0 over trainer.steps (IQL authors, CORL)
 
 
 @dataclass

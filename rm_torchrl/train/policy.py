@@ -28,7 +28,7 @@ from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
 from rm_torchrl.train.config import Recipe, check_seed
 from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
-from rm_torchrl.train.methods import build_method
+from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint
 from rm_torchrl.train.trainer import resolve_device
@@ -116,7 +116,8 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     probe.close()
     inputs = PolicyInput(obs_keys, obs_dim, action_dim, loc, scale, events)
     target = resolve_device(device, "device")
-    method = build_method(recipe, obs_keys, obs_dim, action_dim, target)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, obs_keys, obs_dim, action_dim,
+                          target)
     try:
         method.loss.load_state_dict(state["loss"])
     except RuntimeError as err:

@@ -26,8 +26,8 @@ from rm_torchrl.progress import progress_bar
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import SIGNAL_REPEAT, Recipe
 from rm_torchrl.train.data import prepare_data
-from rm_torchrl.train.losses import compile_method
-from rm_torchrl.train.methods import METHODS, build_method
+from rm_torchrl.methods.losses import compile_method
+from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, LOGS_DIR, RECIPE_FILE, REFINE_FILE
 from rm_torchrl.train.rundir import (RunLock, WriteFailed, appending, cut_partial_line, load_checkpoint, mark_failed,
                                     open_run, save_checkpoint, write_atomic)
@@ -225,7 +225,8 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
     # --- data and model ---------------------------------------------------------------------
     device = resolve_device(recipe.trainer.device)
     data = prepare_data(recipe, device)
-    method = build_method(recipe, data.obs_keys, data.obs_dim, data.action_dim, device)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim, device)
     if recipe.trainer.compile:
         compile_method(method)
     terms = METHODS[recipe.method.name].terms

@@ -38,7 +38,7 @@ from torch import nn
 from torchrl.objectives.common import LossModule
 from torchrl.objectives.utils import ValueEstimators, distance_loss
 
-from rm_torchrl.train.bcq_networks import BCQVAE, BCQCritic, BCQPerturbation, repeat_states
+from rm_torchrl.methods.bcq_networks import BCQVAE, BCQCritic, BCQPerturbation, repeat_states
 
 __all__ = ["BCQVAE", "BCQPerturbation", "BCQCritic", "BCQLoss", "make_bcq_loss", "make_bcq_optimizers"]
 

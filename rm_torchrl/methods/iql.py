@@ -9,7 +9,7 @@ from torchrl.objectives import IQLLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
 
-from rm_torchrl.train.networks import ConcatMLP, GaussianHead, _Splat
+from rm_torchrl.methods.networks import ConcatMLP, GaussianHead, _Splat
 
 
 class SharedForwardIQLLoss(IQLLoss):
@@ -21,7 +21,7 @@ class SharedForwardIQLLoss(IQLLoss):
     - The Q loss regresses the twin Q(s, a) on r + gamma (1 - terminated) V(s'), the TD(0) target
       of ``IQLLoss.qvalue_loss``, with V(s') computed directly rather than through the value
       estimator's generic machinery. Other value estimators use ``IQLLoss.qvalue_loss`` unchanged.
-    - For the networks of ``rm_torchrl.train.networks`` (``ConcatMLP`` critics and actor), each
+    - For the networks of ``rm_torchrl.methods.networks`` (``ConcatMLP`` critics and actor), each
       network is called with its parameters from the loss's parameter TensorDicts
       (``ConcatMLP.call_with``): the twin critics as one batched matmul per layer. On a CPU,
       the module dispatch, parameter swapping and ``vmap`` this avoids cost as much as the

@@ -1,7 +1,7 @@
 """The networks of continuous BCQ (Fujimoto et al. 2019), with the reference code's sizes.
 
 The conditional VAE ``G_omega(a | s)``, the perturbation model ``xi_phi(s, a)`` and the twin
-critics, as plain ``nn.Module``s over a flat state; :mod:`rm_torchrl.train.bcq` wraps them in a
+critics, as plain ``nn.Module``s over a flat state; :mod:`rm_torchrl.methods.bcq` wraps them in a
 TorchRL ``LossModule``.
 """
 from __future__ import annotations

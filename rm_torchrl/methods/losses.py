@@ -1,5 +1,5 @@
 """Loss and optimiser pieces the methods share: BC's loss, Adam with the paper's weight decay, the
-actor's schedule, a one-call soft update and compilation (the registry is :mod:`rm_torchrl.train.methods`)."""
+actor's schedule, a one-call soft update and compilation (the registry is :mod:`rm_torchrl.methods.registry`)."""
 from __future__ import annotations
 
 import math
@@ -10,8 +10,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule, SoftUpdate
 
-from rm_torchrl.train.config import OptimConfig
-from rm_torchrl.train.method import Method
+from rm_torchrl.methods.config import OptimConfig
+from rm_torchrl.methods.method import Method
 
 
 class BCLoss(LossModule):

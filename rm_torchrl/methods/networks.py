@@ -11,7 +11,7 @@ from torch.nn import functional as F
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.modules.distributions import IndependentNormal
 
-from rm_torchrl.train.config import ACTORS
+from rm_torchrl.methods.config import ACTORS
 
 
 class ConcatMLP(nn.Module):
