@@ -13,7 +13,10 @@ the baseline. Prints one JSON object:
 same episode (episode i of both starts from the same state). FrankaKitchen-v1 draws observation
 noise, which its controller reads, from the env's generator at every step, so there the sequential
 episode i meets a noise stream shifted by the earlier episodes' steps; ``..._without_step_noise`` is
-the same comparison with that noise set to zero. Target: ``vectorised_step_ms`` within 2x
+the same comparison with that noise set to zero. ``simulator_step_ms`` is the time inside gymnasium's
+``SyncVectorEnv.step`` during the vectorised evaluation, the simulator on the policy's own
+trajectories (contacts make them dearer than random flailing), and ``overhead_step_ms`` the rest:
+TorchRL's wrapper and transforms, the policy, the loop. Target: ``vectorised_step_ms`` within 2x
 ``raw_step_ms``. Timings are the best of ``--repeats`` (interleaved) after one warm-up, on one
 torch thread.
 """
@@ -93,21 +96,43 @@ def noiseless_diff(loaded, episodes: int, kwargs: dict) -> float:
     return score_diff(loaded.recipe.eval.score, *results)
 
 
+class SimulatorClock:
+    """Seconds spent inside gymnasium's ``SyncVectorEnv.step`` of a vectorised evaluator: the simulator's
+    own cost on the policy's trajectories, which random actions (``raw_step_ms``) need not match."""
+
+    def __init__(self, ev: Evaluator):
+        self.vector_env, self.seconds = ev.env.base_env._env, 0.0
+        step = self.vector_env.step
+
+        def timed(actions):
+            start = time.perf_counter()
+            try:
+                return step(actions)
+            finally:
+                self.seconds += time.perf_counter() - start
+
+        self.vector_env.step = timed
+
+
 def measure(run_dir: Path, episodes: int, repeats: int) -> dict:
     """The three timings, interleaved ``repeats`` times (the best of each kept) after a warm-up."""
     loaded = load_policy(run_dir)
     env_id, env_kwargs, seed = loaded.recipe.eval.env, dict(loaded.recipe.eval.env_kwargs), loaded.recipe.seed
     modes = {"sequential": evaluator(loaded, episodes, False), "vectorised": evaluator(loaded, episodes, True)}
-    best = dict.fromkeys(["raw", *modes], float("inf"))
+    best = dict.fromkeys(["raw", "simulator", *modes], float("inf"))
+    clock = SimulatorClock(modes["vectorised"])
     try:
         results = {name: ev.run() for name, ev in modes.items()}
         for _ in range(repeats):
             best["raw"] = min(best["raw"], raw_step_ms(env_id, env_kwargs, 2000, seed))
             for name, ev in modes.items():
+                clock.seconds = 0.0
                 start = time.perf_counter()
                 results[name] = ev.run()
-                per_step = 1e3 * (time.perf_counter() - start) / sum(results[name]["episode_lengths"])
-                best[name] = min(best[name], per_step)
+                steps = sum(results[name]["episode_lengths"])
+                best[name] = min(best[name], 1e3 * (time.perf_counter() - start) / steps)
+                if name == "vectorised":
+                    best["simulator"] = min(best["simulator"], 1e3 * clock.seconds / steps)
     finally:
         for ev in modes.values():
             ev.env.close()
@@ -122,6 +147,9 @@ def measure(run_dir: Path, episodes: int, repeats: int) -> dict:
         "sequential_step_ms": round(best["sequential"], 4),
         "vectorised_step_ms": round(best["vectorised"], 4),
         "vectorised_over_raw": round(best["vectorised"] / best["raw"], 3),
+        "simulator_step_ms": round(best["simulator"], 4),
+        "simulator_over_raw": round(best["simulator"] / best["raw"], 3),
+        "overhead_step_ms": round(best["vectorised"] - best["simulator"], 4),
         "sequential_over_vectorised": round(best["sequential"] / best["vectorised"], 2),
         "meets_target": best["vectorised"] <= TARGET * best["raw"],
         "max_abs_score_diff": score_diff(loaded.recipe.eval.score, sequential, vectorised),
