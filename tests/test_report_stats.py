@@ -12,11 +12,12 @@ import pytest
 
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.report import group_runs, load_runs
-from rm_torchrl.report.stats import REPS, aggregate, improvement, iqm
+from rm_torchrl.report.stats import REPS, _rliable, aggregate, improvement, iqm
 from test_report import PNG_MAGIC, table_rows, write_run
 
 pytest.importorskip("matplotlib")
 metrics = pytest.importorskip("rliable.metrics")
+_rliable()  # absl, imported with rliable, then logs to the process's stderr, not to this collection's capture
 
 ROOT = Path(__file__).resolve().parent.parent
 KEYS = {"metric", "confidence", "reps", "cells", "overall", "probability_of_improvement"}

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterable
@@ -121,13 +122,19 @@ def write_json(aggregates: Aggregates, path: str | os.PathLike) -> None:
 
 
 def _rliable():
+    """rliable's ``library``. rliable imports absl, whose log handler keeps the ``sys.stderr`` of that moment
+    and closes it when logging is reconfigured (``logging.config.dictConfig``: Hydra, per job) unless it is
+    the current ``sys.stderr``/``stdout``: under a capture (pytest's) that closes the capture's file, so the
+    handler is pointed at the process's own stderr."""
     try:
+        from absl import logging as absl_logging
         from rliable import library
     except ImportError as err:
         raise RMError(f"the report's statistics need rliable: pip install rliable==1.2.0 ({err})") from None
     except TypeError as err:  # arch < 8 (rliable 1.2's cap) under pandas 3
         raise RMError(f"rliable does not import ({err}): its arch < 8 needs pandas < 3: "
                       "pip install 'pandas<3'") from None
+    absl_logging.get_absl_handler().python_handler.setStream(sys.__stderr__)
     return library
 
 
