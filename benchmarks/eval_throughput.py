@@ -32,6 +32,7 @@ from pathlib import Path
 
 import torch
 
+from generate_throughput import bare_rate  # gymnasium's env.step with random actions
 from rm_torchrl import load_policy
 from rm_torchrl.train import load_recipe, train
 from rm_torchrl.train.evaluate import Evaluator, normalized_score
@@ -41,27 +42,6 @@ TARGET = 2.0
 #: Envs that draw from their generator at every step, and the kwargs that make those draws zero: the
 #: vectorised episode i then meets the same noise as the sequential one (the draws still happen).
 STEP_NOISE = {"FrankaKitchen-v1": {"robot_noise_ratio": 0.0, "object_noise_ratio": 0.0}}
-
-
-def raw_step_ms(env_id: str, env_kwargs: dict, steps: int, seed: int) -> float:
-    """gymnasium's ``env.step`` with random actions, reset whenever an episode ends."""
-    import gymnasium as gym
-
-    from rm_torchrl.envs.d4rl_reward import import_gymnasium_robotics
-
-    gym.register_envs(import_gymnasium_robotics(quiet=True))
-    env = gym.make(env_id, **env_kwargs)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = [env.action_space.sample() for _ in range(steps)]
-    start = time.perf_counter()
-    for action in actions:
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-    elapsed = time.perf_counter() - start
-    env.close()
-    return 1e3 * elapsed / steps
 
 
 def trained_run(dataset: str, steps: int, out: Path) -> Path:
@@ -124,7 +104,7 @@ def measure(run_dir: Path, episodes: int, repeats: int) -> dict:
     try:
         results = {name: ev.run() for name, ev in modes.items()}
         for _ in range(repeats):
-            best["raw"] = min(best["raw"], raw_step_ms(env_id, env_kwargs, 2000, seed))
+            best["raw"] = min(best["raw"], 1e3 / bare_rate(env_id, 2000, seed, env_kwargs)["steps_per_s"])
             for name, ev in modes.items():
                 clock.seconds = 0.0
                 start = time.perf_counter()
