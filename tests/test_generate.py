@@ -36,7 +36,7 @@ def test_every_kept_episode_succeeds(dataset):
     assert dataset.total_episodes == 3
     for ep in dataset.iterate_episodes():
         assert ep.observations.shape == (len(ep.actions) + 1, 39)
-        assert 1 <= len(ep.actions) <= 400
+        assert 1 <= len(ep.actions) <= 800
         # obs[36:39] is ball - target: the env's success is a distance below 0.1 on the last step
         assert np.linalg.norm(ep.observations[-1, 36:39]) < 0.1
         assert ep.truncations[-1] and not ep.terminations.any()
@@ -45,7 +45,7 @@ def test_every_kept_episode_succeeds(dataset):
 
 def test_metadata(dataset):
     record = dataset.storage.metadata[GENERATE_METADATA_KEY]
-    assert record["generator"] == "relocate-human" and record["seed"] == SEED and record["max_steps"] == 400
+    assert record["generator"] == "relocate-human" and record["seed"] == SEED and record["max_steps"] == 800
     assert record["policy_settings"]["noise"] == 0.02
     assert record["versions"]["gymnasium-robotics"] and record["versions"]["mujoco"]
     assert record["episodes"] == 3 and record["transitions"] == dataset.total_steps

@@ -15,7 +15,7 @@ from conftest import generate_cli
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
-from rm_torchrl.generate.kitchen import GOAL_TASKS, TASKS, THRESHOLD, KitchenPlayController
+from rm_torchrl.generate.kitchen import CANONICAL, GOAL_TASKS, TASKS, THRESHOLD, KitchenPlayController
 from rm_torchrl.refine import refine
 
 PARTIAL, MIXED = "rmrl/kitchen-partial-test-v0", "rmrl/kitchen-mixed-test-v0"
@@ -104,7 +104,10 @@ def test_same_seed_gives_the_same_episodes_with_two_workers(partial, cache):
 @pytest.mark.parametrize("kwargs,match", [({"bogus": 1}, "unknown option.*'bogus'"),
                                           ({"mix": "all"}, "unknown kitchen mix 'all'"),
                                           ({"all_goals": 2.0}, "all_goals must be in"),
-                                          ({"noise": -0.1}, "noise must be >= 0")])
+                                          ({"noise": -0.1}, "noise must be >= 0"),
+                                          ({"canonical": 1.5}, "canonical must be in"),
+                                          ({"goal_counts": [1, 1]}, "goal_counts must be 3 weights"),
+                                          ({"goal_counts": [0, 0, 0]}, "positive sum")])
 def test_bad_options(cache, kwargs, match):
     with pytest.raises(RMError, match=match):
         generate_dataset(GENERATORS["kitchen-mixed"], "rmrl/kitchen-bad-v0", episodes=1, policy_kwargs=kwargs)
@@ -114,3 +117,28 @@ def test_mixed_plans_always_omit_a_goal_task():
     controller = KitchenPlayController(mix="mixed")
     rng = np.random.default_rng(0)
     assert all(not set(GOAL_TASKS) <= set(controller.plan(rng)) for _ in range(200))
+
+
+@pytest.mark.parametrize("mix", ["partial", "mixed"])
+def test_plans_hold_four_tasks_microwave_first_mostly_in_the_habitual_order(mix):
+    controller = KitchenPlayController(mix=mix)
+    rng = np.random.default_rng(1)
+    plans = [controller.plan(rng) for _ in range(2000)]
+    assert all(len(p) == 4 == len(set(p)) and set(p) <= set(TASKS) for p in plans)
+    assert all(p[0] == "microwave" for p in plans if "microwave" in p)  # never opened after another task
+    habitual = np.mean([p == sorted(p, key=CANONICAL.index) for p in plans])
+    assert 0.75 <= habitual < 0.95  # canonical 0.75, plus random orders that happen to be habitual
+    four = np.mean([set(GOAL_TASKS) <= set(p) for p in plans])
+    if mix == "partial":  # all_goals 0.12, plus the goal_counts draws of four goal tasks
+        assert 0.2 < four < 0.4
+        assert np.mean([p == list(GOAL_TASKS) for p in plans]) > 0.2
+    else:
+        assert four == 0
+
+
+def test_goal_counts_weigh_the_number_of_goal_tasks():
+    controller = KitchenPlayController(mix="mixed", goal_counts=[0, 1, 0])
+    rng = np.random.default_rng(0)
+    assert all(len(set(controller.plan(rng)) & set(GOAL_TASKS)) == 2 for _ in range(100))
+    settings = controller.settings()
+    assert settings["goal_counts"] == [0.0, 1.0, 0.0] and settings["canonical_order"] == list(CANONICAL)

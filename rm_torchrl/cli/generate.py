@@ -26,7 +26,7 @@ def add_arguments(p) -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="processes simulating in parallel; the dataset does not depend on it (default 1)")
     p.add_argument("--max-steps", type=int, default=None,
-                   help="episode step limit (default: the generator's, 400 for relocate, 800 for kitchen)")
+                   help="episode step limit (default: the generator's, 800 for relocate and kitchen)")
     p.add_argument("--noise", type=float, default=None,
                    help="std of the action noise (default: the generator's, 0.02 on relocate's wrist and fingers, "
                         "0.1 on every kitchen action)")

@@ -27,11 +27,13 @@ GENERATORS = {
         description="Adroit relocate: grasp the ball, carry it to the target and hold it (scripted, human-like "
                     "variety of speed and style)",
         events="relocate",
+        max_steps=800,  # D4RL's human demonstrations take about 400 steps, some far more
     ),
     "kitchen-partial": _kitchen(
         "kitchen-partial", "partial", keep_all,
-        "Franka kitchen play like D4RL kitchen-partial: scripted skills in sampled orders; about a third of the "
-        "episodes do all four goal tasks (microwave, kettle, light switch, slide cabinet), all episodes are kept",
+        "Franka kitchen play like D4RL kitchen-partial: four scripted skills an episode, mostly in one habitual "
+        "order; about 30% of the episodes plan all four goal tasks (microwave, kettle, light switch, slide cabinet), "
+        "all episodes are kept",
     ),
     "kitchen-mixed": _kitchen(
         "kitchen-mixed", "mixed", keep_without_all_goals,

@@ -26,7 +26,9 @@ The motion (with a regrasp from a point above whenever the ball stays behind or 
 carry): reach a point above the grasp point (S_grasp 5 cm behind the ball, away from the
 fingertips, so the ball sits under the fingers), descend, close the fingers, lift straight up,
 carry the ball (not the hand) to the target with a limited acceleration, and hold it there until
-``finished``. Speeds, acceleration, approach and lift heights, grip and hold durations, finger and
+``finished``. Like D4RL's human teleoperation (about 400 steps a demonstration, a quarter of them
+spent holding the ball at the target), the motion is slow and hesitant: the hand stops to line up
+at the start of a phase, and the hold lasts ``hold_range`` steps. Speeds, acceleration, approach and lift heights, grip and hold durations, finger and
 thumb closure, noise and wobble are drawn per episode from the ``rng`` given to ``reset``, so
 episodes vary in speed and style and are reproducible.
 """
@@ -53,25 +55,29 @@ class RelocateController:
     the step std of the arm target's smooth wobble (0 and 0 for a clean policy); both are scaled by a
     factor in [0.5, 1.5] drawn per episode. ``grasp_offset``: how far S_grasp is placed behind the
     ball (away from the fingertips); ``grasp_depth``: how far below the ball's centre the descent aims
-    (the hand stops on the ball; aiming lower presses the palm onto it). The ``*_range`` arguments are
+    (the hand stops on the ball; aiming lower presses the palm onto it). ``hesitate``: probability that
+    the hand stops for ``hesitate_range`` steps when a phase begins; ``hold_range``: steps the ball is
+    held at the target before the demonstration ends. The ``*_range`` arguments are
     the ranges the per-episode style is drawn from in ``reset``; ``settings()`` returns them all.
     """
 
-    name = "relocate-scripted-v2"
+    name = "relocate-scripted-v3"  # v3: D4RL's pace (slower, hesitations, a long hold at the target)
     hold_radius = 0.05
 
     def __init__(self, noise: float = 0.02, grasp_offset: float = 0.05, grasp_depth: float = 0.03,
-                 thumb=(1.0, 1.0, 0.5, 1.0, 0.0), carry_range=(0.004, 0.01), accel_range=(0.0003, 0.0008),
-                 finger_range=(0.45, 0.55), xy_gain=0.05, speed_range=(0.008, 0.016),
-                 descend_range=(0.003, 0.006), reach_accel=0.001, arm_jitter: float = 0.001,
-                 still: float = 0.2):
+                 thumb=(1.0, 1.0, 0.5, 1.0, 0.0), carry_range=(0.0025, 0.006), accel_range=(0.0003, 0.0008),
+                 finger_range=(0.45, 0.55), xy_gain=0.05, speed_range=(0.0035, 0.008),
+                 descend_range=(0.0018, 0.0035), reach_accel=0.001, arm_jitter: float = 0.001,
+                 still: float = 0.2, hesitate: float = 0.6, hesitate_range=(15, 45), hold_range=(70, 145)):
         self._settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(
             noise=noise, arm_jitter=arm_jitter, grasp_offset=grasp_offset, grasp_depth=grasp_depth, thumb=thumb,
             carry_range=carry_range, accel_range=accel_range, finger_range=finger_range, xy_gain=xy_gain,
-            speed_range=speed_range, descend_range=descend_range, reach_accel=reach_accel, still=still).items()}
+            speed_range=speed_range, descend_range=descend_range, reach_accel=reach_accel, still=still,
+            hesitate=hesitate, hesitate_range=hesitate_range, hold_range=hold_range).items()}
         self.noise = float(noise)
         self.arm_jitter = float(arm_jitter)
         self.still = float(still)
+        self.hesitate, self.hesitate_range, self.hold_range = float(hesitate), hesitate_range, hold_range
         self.grasp_offset = float(grasp_offset)
         self.grasp_depth = float(grasp_depth)
         self.thumb = np.asarray(thumb, float)
@@ -112,7 +118,7 @@ class RelocateController:
         self.ik_gain = float(rng.uniform(0.3, 0.6))
         self.finger_close = float(rng.uniform(*self.finger_range))
         self.thumb_close = float(rng.uniform(0.8, 1.0))
-        self.hold_steps = int(rng.integers(10, 31))
+        self.hold_steps = int(rng.integers(self.hold_range[0], self.hold_range[1] + 1))
         self.episode_noise = self.noise * float(rng.uniform(0.5, 1.5))
         self.jitter = self.arm_jitter * float(rng.uniform(0.5, 1.5))
         self.style = dict(speed=self.speed, descend_speed=self.descend_speed, carry_speed=self.carry_speed,
@@ -139,6 +145,8 @@ class RelocateController:
         self._grasp = None
         self._carry_offset = None
         self.regrasps = 0
+        self._pause = 0
+        self.style["hesitations"] = 0
 
     # ------------------------------------------------------------------ per step
 
@@ -162,6 +170,13 @@ class RelocateController:
             grasp = self._grasp
         self.phase_steps += 1
         self._held = self._held + 1 if np.linalg.norm(ball - target) < self.hold_radius else 0
+        if self._pause > 0:  # a human stops to look and line up before the next move
+            self._pause -= 1
+            if self.phase in ("close", "lift", "carry"):
+                self._close_fingers()
+            self._move_waypoint(self.waypoint, 0.0, self.reach_accel)
+            self._ik(env, site)
+            return self._action(d)
 
         if self.phase == "reach":  # above the grasp point first, so the fingers do not hit the ball
             goal, speed = grasp + [0, 0, self.approach_height], self.speed
@@ -236,6 +251,9 @@ class RelocateController:
         """Enter ``phase``; the lift goal is fixed here, straight above where the grasp happened."""
         if phase == "lift":
             self._lift_goal = self.waypoint + [0, 0, self.lift_height]
+        if phase != "close" and self._rng.random() < self.hesitate:
+            self._pause = int(self._rng.integers(self.hesitate_range[0], self.hesitate_range[1] + 1))
+            self.style["hesitations"] += 1
         self.phase, self.phase_steps, self._arrived_at = phase, 0, None
 
     @staticmethod
