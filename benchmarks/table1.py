@@ -96,15 +96,21 @@ def committed(results: Path, name: str, steps: int) -> bool:
     return len(steps_done) > 0 and int(steps_done[-1]) >= steps
 
 
-def run(args) -> None:
-    todo, cells = [], grid(args.out, args.seeds, args.datasets, args.methods)
+def pending(cells, results: Path, extra=()) -> list[tuple[None, list[str]]]:
+    """The cells (``grid``'s form, with ``name``, ``seed`` and ``trainer.steps``) not finished in the committed results."""
+    todo = []
     for path, overrides in cells:
         values = dict(o.split("=", 1) for o in overrides)
-        if not committed(Path(args.results), f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
-            todo.append((path, overrides + args.override))
+        if not committed(results, f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
+            todo.append((path, [*overrides, *extra]))
     print(f"{len(todo)} runs to do or continue ({len(cells) - len(todo)} finished in the committed results)",
           file=sys.stderr)
-    run_grid(todo, args.jobs)
+    return todo
+
+
+def run(args) -> None:
+    run_grid(pending(grid(args.out, args.seeds, args.datasets, args.methods), Path(args.results), args.override),
+             args.jobs)
 
 
 def setup(args) -> None:
@@ -164,20 +170,19 @@ def machine_time(summary) -> list[str]:
     return lines + ["", "In brackets: runs with a recorded time."]
 
 
-def report(args) -> None:
-    results = Path(args.results)
-    skipped: list[str] = []
-    # this session's run directories, and the committed copies of runs finished in earlier sessions
-    fresh = {p.name for p in Path(args.out).iterdir()} if Path(args.out).is_dir() else set()
+def gather(out: Path, results: Path, skipped: list[str]):
+    """This session's runs under ``out`` and the committed copies (``results/runs``) of runs from earlier sessions."""
+    fresh = {p.name for p in out.iterdir()} if out.is_dir() else set()
     earlier = [p for p in sorted((results / "runs").glob("*")) if p.is_dir() and p.name not in fresh]
-    runs = load_runs([p for p in [Path(args.out), *earlier] if p.exists()], skipped=skipped)
-    budget = {LABELS[m]: steps for m, (steps, _) in BUDGETS.items()}
-    unfinished = [r for r in runs if r.final_step < budget.get(r.method, 0)]
-    skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {budget[r.method]:,} steps)" for r in unfinished]
-    runs = [r for r in runs if r not in unfinished]
-    missing = missing_cells(runs)
-    groups = group_runs(runs)
-    stats = aggregate(groups, args.reps)
+    return load_runs([p for p in [out, *earlier] if p.exists()], skipped=skipped)
+
+
+def collect(runs, results: Path) -> list[dict]:
+    """Copy each run's small files to ``results/runs/<run>/`` and return one summary object per run.
+
+    Copied: ``eval.csv``, the resolved ``recipe.yaml``, ``refine_report.json`` and the run's machine
+    seconds (from its checkpoint); a run that is already the committed copy keeps its files.
+    """
     (results / "runs").mkdir(parents=True, exist_ok=True)
     summary = []
     for run in runs:
@@ -203,6 +208,21 @@ def report(args) -> None:
                         "final_success": float(run.evals["success_rate"][-1]),
                         "final_events": float(run.evals["events_mean"][-1]),
                         "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
+    return summary
+
+
+def report(args) -> None:
+    results = Path(args.results)
+    skipped: list[str] = []
+    runs = gather(Path(args.out), results, skipped)
+    budget = {LABELS[m]: steps for m, (steps, _) in BUDGETS.items()}
+    unfinished = [r for r in runs if r.final_step < budget.get(r.method, 0)]
+    skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {budget[r.method]:,} steps)" for r in unfinished]
+    runs = [r for r in runs if r not in unfinished]
+    missing = missing_cells(runs)
+    groups = group_runs(runs)
+    stats = aggregate(groups, args.reps)
+    summary = collect(runs, results)
     (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     lines = [f"| dataset | method | steps × seeds | final score | final score IQM [{CI}] | "
              "mean score over evaluations | final D4RL return | paper's return (0.5M steps) | success (final) | "

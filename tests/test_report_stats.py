@@ -221,3 +221,26 @@ def test_table1_benchmark_report(tmp_path):
     assert "## Aggregate over datasets" in text and "| Ours > IQL | 1.00 [1.00, 1.00] |" in text
     assert "- CQL on door-human-v0: 3 runs end at step 10,000, Ours there at 50,000" in text
     assert (results / "performance_profile.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_door_500k_benchmark_report(tmp_path):
+    """``benchmarks/door_500k.py report``: per-method table with IQM, best, last five, the hold check; unfinished runs out."""
+    results = tmp_path / "results"
+    curve = {step: 10.0 for step in range(10_000, 500_001, 10_000)}
+    for seed, late in enumerate((10.0, 8.0, 2.0)):  # the third seed falls to a fifth of its plateau at the end
+        write_run(results / "runs", "door-human-v0-ours", seed, "ours", True, "door",
+                  {**curve, **{s: late for s in range(460_000, 500_001, 10_000)}})
+    write_run(results / "runs", "door-human-v0-iql", 0, "iql", False, "door", {10_000: 1.0, 250_000: 2.0})
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
+                           str(tmp_path / "none"), "--results", str(results), "--reps", "200"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    text = (results / "results.md").read_text()
+    assert "| Ours | 3 | 6.7 ± 4.2 | 6.7 [2.0, 10.0] | 10.0 ± 0.0 | 6.7 ± 4.2 |" in text
+    assert "| 10.0 ± 0.0 | 2 of 3 |" in text  # best five in a row, and the runs that kept half of it
+    assert "door-human-v0-iql-seed0: in progress (250,000 of 500,000 steps)" in text
+    assert "- IQL: 0 of 3 seeds" in text
+    summary = json.loads((results / "summary.json").read_text())
+    assert [s["holds"] for s in sorted(summary, key=lambda s: s["seed"])] == [True, True, False]
+    assert {s["last5_mean"] for s in summary} == {10.0, 8.0, 2.0}
+    assert (results / "curves.png").read_bytes()[:8] == PNG_MAGIC

@@ -1,0 +1,152 @@
+"""door-human-v0 at the recipes' own budget: ours, IQL and BC, 500k gradient steps, seeds 0-2.
+
+    python benchmarks/door_500k.py run --jobs 2 --set trainer.threads=1   # resumable: skips finished runs
+    python benchmarks/door_500k.py report                                 # benchmarks/results/door-human-v0-500k/
+
+Each run is the README's ``rmrl train dataset=door-human-v0 method=M`` with the recipes' defaults
+(500k steps), evaluating every 10,000 steps over 10 episodes and checkpointing as often, so a stopped
+session loses at most 10k steps. Run directories go to ``--out`` (not committed); runs committed under
+the results in earlier sessions are skipped. The report writes ``results.md`` (per run and per method:
+final and best evaluation, mean of the last five, IQM [95% CI] over seeds, success and events reached,
+whether the score held, beside the paper's returns), ``curves.png``, ``summary.json`` and per-run
+``runs/<run>/eval.csv``, ``recipe.yaml`` and ``machine_seconds``. Unfinished runs are listed, not reported.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from table1 import LABELS, PAPER, collect, gather, pending  # noqa: E402
+
+from rm_torchrl.cli.train import run_grid  # noqa: E402
+from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
+from rm_torchrl.report.runs import group_runs  # noqa: E402
+from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
+from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
+
+DATASET = "door-human-v0"
+METHODS = ("ours", "iql", "bc")
+SEEDS = (0, 1, 2)
+STEPS = 500_000
+EVERY = 10_000
+LAST = 5  # evaluations averaged at the end
+#: a run "holds" its score when the mean of its last five evaluations keeps at least this share of its best
+#: five in a row (a single best evaluation of 10 episodes is the luckiest of 50 and too noisy a peak)
+HOLD = 0.5
+
+
+def grid(out: str, seeds, methods) -> list[tuple[None, list[str]]]:
+    """Seed-major, so a partial sweep has every method at its first seeds."""
+    return [(None, [f"dataset={DATASET}", f"method={m}", f"name={DATASET}-{m}", f"seed={k}", f"out={out}",
+                    f"trainer.steps={STEPS}", f"eval.every={EVERY}", f"trainer.checkpoint_every={EVERY}"])
+            for k in seeds for m in methods]
+
+
+def run(args) -> None:
+    run_grid(pending(grid(args.out, args.seeds, args.methods), Path(args.results), args.override), args.jobs)
+
+
+def _curve_facts(run) -> dict:
+    score = np.asarray(run.evals["score"], dtype=float)
+    steps = np.asarray(run.evals["step"])
+    best = int(np.argmax(score))
+    last = float(score[-LAST:].mean())
+    rolling = np.convolve(score, np.ones(LAST) / LAST, mode="valid")
+    peak = int(np.argmax(rolling))
+    return {"best_score": float(score[best]), "best_step": int(steps[best]), "last5_mean": last,
+            "peak5_mean": float(rolling[peak]), "peak5_end_step": int(steps[peak + LAST - 1]),
+            "holds": bool(last >= HOLD * rolling[peak])}
+
+
+def _cell(values) -> str:
+    values = np.asarray(values, dtype=float)
+    return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
+
+
+def report(args) -> None:
+    results = Path(args.results)
+    skipped: list[str] = []
+    runs = [r for r in gather(Path(args.out), results, skipped) if r.dataset == DATASET]
+    unfinished = [r for r in runs if r.final_step < STEPS]
+    skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {STEPS:,} steps)" for r in unfinished]
+    runs = [r for r in runs if r not in unfinished]
+    summary = collect(runs, results)
+    for row, r in zip(summary, runs):
+        row.update(_curve_facts(r))
+    tmp = results / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=1) + "\n")
+    tmp.replace(results / "summary.json")
+    groups = group_runs(runs)
+    stats = aggregate(groups, args.reps)
+    per_method = [f"| method | seeds | final score | final score IQM [{CI}] | best score | mean of the last {LAST} "
+                  f"| final D4RL return | paper's return (0.5M steps) | success (final) | events (final) | "
+                  f"best {LAST} in a row | runs holding {HOLD:.0%} of it |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for g in groups:
+        rows = [s for s in summary if s["method"] == g.method]
+        cell = stats.cell(DATASET, g.method)
+        per_method.append(
+            f"| {g.method} | {len(rows)} | {_cell([s['final_score'] for s in rows])} | "
+            f"{interval(cell.iqm, 1) if cell else ''} | {_cell([s['best_score'] for s in rows])} | "
+            f"{_cell([s['last5_mean'] for s in rows])} | {_cell([s['final_return'] for s in rows])} | "
+            f"{PAPER[DATASET].get(g.method, '')} | {np.mean([s['final_success'] for s in rows]):.0%} | "
+            f"{np.mean([s['final_events'] for s in rows]):.2f} | {_cell([s['peak5_mean'] for s in rows])} | "
+            f"{sum(s['holds'] for s in rows)} of {len(rows)} |")
+    per_run = ["| run | final score | best score (step) | best 5 in a row (ending at) | mean of the last 5 | "
+               "final D4RL return | success | events | machine time |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for s, r in sorted(zip(summary, runs), key=lambda x: (x[1].method, x[1].seed)):
+        minutes = f"{s['machine_seconds'] / 60:.0f} min" if s["machine_seconds"] else ""
+        per_run.append(f"| {r.path.name} | {s['final_score']:.1f} | {s['best_score']:.1f} ({s['best_step'] // 1000}k) | "
+                       f"{s['peak5_mean']:.1f} ({s['peak5_end_step'] // 1000}k) | {s['last5_mean']:.1f} | {s['final_return']:.1f} | {s['final_success']:.0%} | "
+                       f"{s['final_events']:.1f} | {minutes} |")
+    if groups:
+        plot_learning_curves(groups, results / "curves.png")
+    missing = [f"{LABELS[m]}: {sum(s['method'] == LABELS[m] for s in summary)} of {len(SEEDS)} seeds"
+               for m in METHODS if sum(s["method"] == LABELS[m] for s in summary) < len(SEEDS)]
+    text = ["# door-human-v0 at the recipes' own budget (500k steps)", "",
+            f"{len(runs)} runs of `rmrl train dataset={DATASET} method=M` with the recipes' defaults: {STEPS:,} "
+            f"gradient steps, evaluation every {EVERY:,} steps over 10 episodes (vectorised, D4RL's reward), "
+            f"score = D4RL-normalised return, mean ± sample std over seeds. {iqm_note(stats)} The paper's "
+            "column is its Table 1 (average return over 3 seeds at 0.5M steps).", "",
+            *per_method, "", "## Runs", "", *per_run, "",
+            f"A run holds its score when the mean of its last {LAST} evaluations is at least {HOLD:.0%} of its best "
+            f"mean of {LAST} evaluations in a row.",
+            "", "![learning curves](curves.png)", "", "## Commands", "", "```bash",
+            "python benchmarks/door_500k.py run --jobs 2 --set trainer.threads=1",
+            "python benchmarks/door_500k.py report", "```", ""]
+    if missing:
+        text += ["## Not complete yet", "", *(f"- {line}" for line in missing), ""]
+    if skipped:
+        text += ["## Runs left out", "", *(f"- {line}" for line in skipped), ""]
+    tmp = results / "results.md.tmp"
+    tmp.write_text("\n".join(text))
+    tmp.replace(results / "results.md")
+    print("\n".join(per_method))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("command", choices=("run", "report"))
+    p.add_argument("--out", default="runs", help="run directories (not committed)")
+    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "door-human-v0-500k"))
+    p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
+                   help="extra recipe overrides for every run (e.g. trainer.threads=1)")
+    p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the CIs (default {REPS})")
+    args = p.parse_args()
+    {"run": run, "report": report}[args.command](args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
