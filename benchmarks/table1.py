@@ -220,7 +220,7 @@ def report(args) -> None:
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
           "|---|---|---|---|---|---|"]
     for dataset in DATASETS:
-        ours = next((r for r in runs if r.dataset == dataset and r.stages), None)
+        ours = next((r for r in runs if r.dataset == dataset and r.stages and "reused" not in r.stages), None)
         if ours:
             s = ours.stages
             t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
