@@ -88,7 +88,7 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
             raise RMError(f"{recipe.data.source} was refined {'with' if reused else 'without'} the reuse stage, "
                           f"but the recipe has data.reuse={str(recipe.data.reuse).lower()}")
         data = split_rm_state(raw)
-        report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha") if k in exported},
+        report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha", "reuse") if k in exported},
                   "events": list(spec.names), "refined_before": exported["source"]}
     elif use_rm:
         data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints, reuse=recipe.data.reuse)
