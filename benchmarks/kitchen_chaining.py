@@ -124,7 +124,8 @@ def own_episodes(probe: KitchenProbe, episodes: int, horizon: int, seed: int) ->
 def skill_starts(recipe, n: int, seed: int) -> dict:
     """Per group of the refined order: up to ``n`` first transitions of its kept sub-trajectories."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
-    data, report = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints)
+    data, report = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints,
+                          reuse=recipe.data.reuse)
     piece = data["subtrajectory"]
     first = run_starts(piece)
     length = torch.bincount(piece)  # steps of every kept sub-trajectory, indexed by its id

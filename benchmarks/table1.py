@@ -38,6 +38,7 @@ from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profi
 from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
 from rm_torchrl.report.stats import REPS, aggregate, write_json  # noqa: E402
 from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note  # noqa: E402
+from rm_torchrl.run_format import REUSED  # noqa: E402
 
 #: Table 1 row -> the dataset option in recipes/dataset/ (rmrl-*: the generated stand-ins, rmrl/<row>-v0)
 DATASETS = {
@@ -240,7 +241,7 @@ def report(args) -> None:
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
           "|---|---|---|---|---|---|"]
     for dataset in DATASETS:
-        ours = next((r for r in runs if r.dataset == dataset and r.stages), None)
+        ours = next((r for r in runs if r.dataset == dataset and r.stages and REUSED not in r.stages), None)
         if ours:
             s = ours.stages
             t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "

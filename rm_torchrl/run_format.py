@@ -31,7 +31,17 @@ REWARD_COLUMN = "reward"  # the one text column of eval.csv
 #: What a run written before eval.csv had a reward column was evaluated with: the env's own reward.
 LEGACY_REWARD = "env"
 
-#: The refinement stages of ``refine_report.json``, as the paper's Table 2 labels its rows, in its order.
+#: The refinement stages of ``refine_report.json``, as the paper's Table 2 labels its rows, in its order;
+#: ``reused`` (beyond the paper: the rows after splicing with the abandoned pieces brought back) is there
+#: only when the reuse stage ran.
 TABLE2_ROWS = {"original": "Original Dataset", "split": "Splitting Traj.", "ordered": "Ordered Events",
-               "shorter": "Shorter Traj."}
-STAGES = tuple(TABLE2_ROWS)
+               "reused": "Reused Sub-traj.", "shorter": "Shorter Traj."}
+REUSED = "reused"
+#: The stages every report has (the paper's Table 2).
+STAGES = tuple(k for k in TABLE2_ROWS if k != REUSED)
+
+
+def stage_rows(reports) -> list[str]:
+    """The Table 2 rows of ``reports`` (each a ``stages`` mapping): the paper's, and ``reused`` if one has it."""
+    reports = list(reports)
+    return [k for k in TABLE2_ROWS if k != REUSED or any(REUSED in r for r in reports)]

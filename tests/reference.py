@@ -212,6 +212,24 @@ def splice(groups, order: Sequence[int]) -> dict[int, list[Piece]]:
     return out
 
 
+def reuse_abandoned(pieces: Sequence[Piece], order: Sequence[int], ordered: dict[int, list[Piece]]):
+    """Beyond the paper: every piece the splice drops whose new event e^i is on the order joins group i.
+
+    Returns the groups (each in dataset order again) and the brought-back pieces.
+    """
+    rank = {e: i for i, e in enumerate(order, start=1)}
+    on_order = set(zip([0] + list(order[:-1]), order))
+    brought = []
+    for piece in pieces:
+        if piece.group not in on_order and piece.group[1] in rank:
+            brought.append(piece)
+    out = {}
+    for i, members in ordered.items():
+        joined = members + [p for p in brought if rank[p.group[1]] == i]
+        out[i] = sorted(joined, key=lambda p: (p.episode, p.start))
+    return out, brought
+
+
 def quota(size: int, alpha) -> int:
     return max(1, math.ceil(Fraction(str(alpha)) * size))
 
@@ -255,8 +273,13 @@ def _rows(pieces: Iterable[Piece]) -> list[tuple[int, int]]:
     return sorted((p.episode, t) for p in pieces for t in range(p.start, p.stop + 1))
 
 
-def reference_refine(episodes_phis, alpha=1.0, constraints=(), n: int | None = None, episode_ids=None) -> dict:
+def reference_refine(episodes_phis, alpha=1.0, constraints=(), n: int | None = None, episode_ids=None,
+                     reuse: bool = False) -> dict:
     """The whole method; raises NoEventError / ZeroScoreError where the pipeline must refuse.
+
+    ``reuse`` brings back the pieces the splice drops (:func:`reuse_abandoned`) before keeping the shortest:
+    ``reuse_rank`` holds the ranks after it, ``reused_rows`` the rows it passes on, ``stages`` has ``reused``;
+    ``reused_pieces`` are the brought-back pieces and ``reused`` flags every refined row.
 
     ``episode_ids`` are the ids stored in the dataset (default 0, 1, ...). Row lists hold
     ``(source_episode_id, t)`` in dataset order. ``refined`` holds
@@ -292,28 +315,38 @@ def reference_refine(episodes_phis, alpha=1.0, constraints=(), n: int | None = N
     rank_of = {e_pair: i for i, e_pair in enumerate(zip([0] + order[:-1], order), start=1)}
     out["rank"] = {(ids[p.episode], t): rank_of.get(p.group, 0) for p in pieces for t in range(p.start, p.stop + 1)}
     out["ordered_rows"] = [(ids[e], t) for e, t in _rows(p for g in ordered.values() for p in g)]
+    brought = []
+    if reuse:
+        ordered, brought = reuse_abandoned(pieces, order, ordered)
+        position = {e: i for i, e in enumerate(order, start=1)}
+        out["reuse_rank"] = dict(out["rank"])
+        for p in brought:
+            for t in range(p.start, p.stop + 1):
+                out["reuse_rank"][(ids[p.episode], t)] = position[p.group[1]]
+        out["reused_rows"] = [(ids[e], t) for e, t in _rows(p for g in ordered.values() for p in g)]
+    out["reused_pieces"] = brought
     shorter = keep_shortest(ordered, alpha)
     kept = sorted((p for g in shorter.values() for p in g), key=lambda p: (p.episode, p.start))
     out["shorter_rows"] = [(ids[e], t) for e, t in _rows(kept)]
     labels = relabel(order, shorter, n)
-    refined, rewards, terminated, truncated, new_episode = [], [], [], [], []
+    refined, rewards, terminated, truncated, new_episode, reused = [], [], [], [], [], []
     for j, p in enumerate(kept):
         for t in range(p.start, p.stop + 1):
             u, u2 = labels[(p.episode, t)]
             refined.append((ids[p.episode], t, u, u2))
+            reused.append(p in brought)
             rewards.append(delta_r(u, u2))
             last = t == p.stop
             terminated.append(last and is_terminal(u2))
             truncated.append(last and not is_terminal(u2))
             new_episode.append(j)
+    stages = {"original": len(out["rows_original"]), "split": len(split_rows), "ordered": len(out["ordered_rows"])}
+    if reuse:
+        stages["reused"] = len(out["reused_rows"])
+    stages["shorter"] = len(refined)
     out.update(
         refined=refined, rewards=rewards, terminated=terminated, truncated=truncated, episode=new_episode,
-        stages={
-            "original": len(out["rows_original"]),
-            "split": len(split_rows),
-            "ordered": len(out["ordered_rows"]),
-            "shorter": len(refined),
-        },
+        reused=reused, stages=stages,
         group_sizes={i: len(g) for i, g in ordered.items()},
     )
     return out

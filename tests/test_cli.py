@@ -179,6 +179,57 @@ def test_refine_tiny(capsys, tmp_path, tiny):
     assert f"wrote {report['stages']['shorter']:,} transitions" in stdout
 
 
+@pytest.fixture(scope="module")
+def late_reach(tmp_path_factory) -> str:
+    """The tiny file with its last episode opening the door before its palm reaches the handle: its pieces
+    e0 -> door_0.2 and door_1.35 -> reach_handle are off the best order."""
+    path = write_door_h5(tmp_path_factory.mktemp("late") / "door-late.hdf5")
+    with h5py.File(path, "r+") as f:
+        obs = f["observations"][...]
+        obs[5 * 40:5 * 40 + 35, 35] = 0.5
+        f["observations"][...] = obs
+    return str(path)
+
+
+def test_refine_reuse_brings_back_what_the_splice_abandons(capsys, tmp_path, late_reach):
+    base = ["refine", "--dataset", late_reach, "--events", "door"]
+    code, _, err = run(capsys, *base, "--out", tmp_path / "paper")
+    assert code == 0, err
+    paper = load_report(tmp_path / "paper")
+    code, stdout, err = run(capsys, *base, "--reuse", "--out", tmp_path / "reuse")
+    assert code == 0, err
+    report = load_report(tmp_path / "reuse")
+    assert list(paper["stages"]) == ["original", "split", "ordered", "shorter"] and "reuse" not in paper
+    assert list(report["stages"]) == ["original", "split", "ordered", "reused", "shorter"]
+    stages = report["stages"]
+    assert stages["ordered"] == paper["stages"]["ordered"] < stages["reused"] == stages["split"] == stages["shorter"]
+    assert report["order"] == paper["order"] == DOOR_EVENTS
+    assert report["reuse"]["subtrajectories"] == 2
+    assert report["reuse"]["groups"] == {"e0->reach_handle": 1, "reach_handle->door_0.2": 1, "door_0.2->door_1.0": 0,
+                                         "door_1.0->door_1.35": 0}
+    data = TensorDict.load_memmap(tmp_path / "reuse" / "data")
+    assert int(data["reused"].sum()) == report["reuse"]["rows"] == stages["reused"] - stages["ordered"]
+    assert set(data["source_episode"][data["reused"]].tolist()) == {5}
+    assert any("Reused Sub-traj." in line and f"{stages['reused']:,}" in line for line in stdout.splitlines()), stdout
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"dataset: {late_reach}\nevents: door\nreuse: true\n")
+    code, _, err = run(capsys, "refine", "--config", recipe, "--out", tmp_path / "on")
+    assert code == 0, err
+    assert load_report(tmp_path / "on")["stages"] == stages
+    code, _, err = run(capsys, "refine", "--config", recipe, "--no-reuse", "--out", tmp_path / "off")
+    assert code == 0, err
+    assert load_report(tmp_path / "off")["stages"] == paper["stages"]
+
+
+@pytest.mark.parametrize("value", ['"yes"', "1", "[true]"])
+def test_refine_recipe_reuse_must_be_a_bool(capsys, tmp_path, tiny, value):
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"dataset: {tiny}\nevents: door\nreuse: {value}\n")
+    assert_error(capsys, "refine", ["refine", "--config", recipe, "--out", tmp_path / "o"],
+                 "reuse must be true or false, got")
+    assert not (tmp_path / "o").exists()
+
+
 def test_output_exists_without_and_with_overwrite(capsys, tmp_path, tiny):
     out = tmp_path / "out"
     out.mkdir()

@@ -12,6 +12,7 @@ import torch
 from rm_torchrl.cli.main import main
 from rm_torchrl.data.refined_to_minari import EXPORT_METADATA_KEY, export_refined_minari
 from rm_torchrl.data.sources import load_dataset
+from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import refine
 from rm_torchrl.segments import run_starts
@@ -93,6 +94,9 @@ def test_training_on_the_export_is_training_on_the_refined_data(exported, source
     with pytest.raises(Exception, match="was refined with the events"):
         train(load_recipe(recipe, ["name=other-events", "trainer.steps=5", f"data.source={exported}",
                                    "data.events=relocate"]), progress=False)
+    with pytest.raises(RMError, match="was refined without the reuse stage, but the recipe has data.reuse=true$"):
+        train(load_recipe(recipe, ["name=reuse", "trainer.steps=5", f"data.source={exported}", "data.reuse=true"]),
+              progress=False)
 
 
 def test_cli_refine_writes_the_export_and_refuses_a_taken_name_before_working(exported, source, tmp_path, capsys):

@@ -3,7 +3,8 @@
 Datasets come from ``reference.random_episodes`` (seeded): n = 1..5 events, 1..30 episodes of
 1..20 transitions (some datasets with only length-1 / length-2 episodes), events that already hold
 at s_0, flicker on and off, and several events switching in one transition; alpha in
-{0.1, 0.5, 0.9, 1.0}; random order constraints (by name or by id, sometimes contradictory).
+{0.1, 0.5, 0.9, 1.0}; random order constraints (by name or by id, sometimes contradictory); with and
+without the reuse stage (beyond the paper).
 """
 from __future__ import annotations
 
@@ -22,11 +23,14 @@ from rm_torchrl.refine import (
     EventOrder,
     KeepShortest,
     LabelRM,
+    ReuseAbandoned,
     Splice,
     SplitGroup,
     best_event_order,
+    make_refine_pipeline,
     refine,
 )
+from rm_torchrl.refine.base import group_name
 
 ALPHAS = [0.1, 0.5, 0.9, 1.0]
 
@@ -76,14 +80,35 @@ def table(td, *keys):
     return out
 
 
-def check_against_reference(case: Case):
+def check_reuse_stage(x, r, case: Case, names: list):
+    """ReuseAbandoned against the reference: ranks, the ``reused`` column and the stage's counts."""
+    stage = ReuseAbandoned(names)
+    x = stage(x)
+    rows = table(x, "episode", "t")
+    assert x["group_rank"].tolist() == [r["reuse_rank"][row] for row in rows]
+    brought = r["reused_pieces"]
+    back = {(case.ids[p.episode], t) for p in brought for t in range(p.start, p.stop + 1)}
+    assert x["reused"].tolist() == [row in back for row in rows]
+    position = {e: i for i, e in enumerate(r["order"], start=1)}
+    groups = [group_name(names, a, b) for a, b in zip([0] + r["order"][:-1], r["order"])]
+    assert stage.stats == {
+        "rows_in": len(rows), "rows_out": len(rows), "subtrajectories": len(brought), "rows": len(back),
+        "rows_on_order": len(r["ordered_rows"]),
+        "groups": {g: sum(position[p.group[1]] == i for p in brought) for i, g in enumerate(groups, start=1)},
+        "group_rows": {g: sum(p.length for p in brought if position[p.group[1]] == i)
+                       for i, g in enumerate(groups, start=1)},
+    }
+    return x
+
+
+def check_against_reference(case: Case, reuse: bool = False):
     n = case.n
     names = ref.event_names(n)
     td, spec = ref.episodes_to_td(case.eps, n, episode_ids=case.ids, names=names, seed=len(case.eps))
     original = td.clone()
     constraints = [(names[a - 1], names[b - 1]) for a, b in case.constraints] if case.by_name else case.constraints
     try:
-        r = ref.reference_refine(case.eps, case.alpha, case.constraints, n=n, episode_ids=case.ids)
+        r = ref.reference_refine(case.eps, case.alpha, case.constraints, n=n, episode_ids=case.ids, reuse=reuse)
         failure = None
     except ref.NoEventError as err:
         r, failure = err.partial, "no event"
@@ -100,7 +125,7 @@ def check_against_reference(case: Case):
         with pytest.raises(RMError, match="no event ever happens"):
             SplitGroup()(x)
         with pytest.raises(RMError, match="no event"):
-            refine(td, spec, case.alpha, constraints)
+            refine(td, spec, case.alpha, constraints, reuse=reuse)
         return
     x = SplitGroup()(x)
     assert table(x, "episode", "t", "subtrajectory", "group_from", "group_to") == r["split"]
@@ -113,7 +138,7 @@ def check_against_reference(case: Case):
         if case.constraints:
             assert "constraints" in str(err.value)
         with pytest.raises(RMError, match="scores 0"):
-            refine(td, spec, case.alpha, constraints)
+            refine(td, spec, case.alpha, constraints, reuse=reuse)
         return
     x = order(x)
     assert failure is None
@@ -122,9 +147,13 @@ def check_against_reference(case: Case):
     assert order.group_sizes == r["groups"]
     assert [r["rank"][(e, t)] for e, t in table(x, "episode", "t")] == x["group_rank"].tolist()
 
+    # beyond the paper: the pieces the splice would drop, brought back
+    if reuse:
+        x = check_reuse_stage(x, r, case, names)
+
     # section 3.4.2
     x = Splice()(x)
-    assert table(x, "episode", "t") == r["ordered_rows"]
+    assert table(x, "episode", "t") == r["reused_rows" if reuse else "ordered_rows"]
     x = KeepShortest(case.alpha)(x)
     assert table(x, "episode", "t") == r["shorter_rows"]
 
@@ -137,6 +166,10 @@ def check_against_reference(case: Case):
     assert x["next", "truncated"].squeeze(-1).tolist() == r["truncated"]
     assert x["next", "done"].squeeze(-1).tolist() == [a or b for a, b in zip(r["terminated"], r["truncated"])]
     assert x["episode"].tolist() == r["episode"]
+    if reuse:
+        assert x["reused"].tolist() == r["reused"]
+    else:
+        assert "reused" not in x.keys()
     # the other columns travel with their rows
     pos = {(e, t): i for i, (e, t) in enumerate(table(original, "episode", "t"))}
     idx = torch.tensor([pos[(e, t)] for e, t, _, _ in r["refined"]], dtype=torch.long)
@@ -146,18 +179,26 @@ def check_against_reference(case: Case):
     assert torch.equal(x["next", "env_reward"], original["next", "reward"][idx])
 
     # the one-call pipeline gives the same data and a matching report
-    out, report = refine(td, spec, case.alpha, constraints)
+    out, report = refine(td, spec, case.alpha, constraints, reuse=reuse)
     assert (td == original).all()
     assert (out == x).all()
     assert report.stages == r["stages"]
+    assert list(report.stages) == (["original", "split", "ordered", "reused", "shorter"] if reuse
+                                   else ["original", "split", "ordered", "shorter"])
+    if reuse:
+        assert report.reuse["subtrajectories"] == len(r["reused_pieces"])
+        assert report.reuse["rows_on_order"] == r["stages"]["ordered"]
+    else:
+        assert "reuse" not in report.to_dict() and report.reuse == {}
     assert report.order == [names[k - 1] for k in r["order"]]
     assert report.order_score == r["score"]
     assert report.subtrajectories == {"split": len(r["pieces"]), "refined": len(set(r["episode"]))}
 
 
+@pytest.mark.parametrize("reuse", [False, True])
 @pytest.mark.parametrize("seed", range(240))
-def test_stages_match_reference(seed):
-    check_against_reference(make_case(seed))
+def test_stages_match_reference(seed, reuse):
+    check_against_reference(make_case(seed), reuse)
 
 
 @st.composite
@@ -175,9 +216,9 @@ def datasets(draw):
 
 
 @settings(max_examples=150, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
-@given(datasets())
-def test_stages_match_reference_hypothesis(case):
-    check_against_reference(case)
+@given(datasets(), st.booleans())
+def test_stages_match_reference_hypothesis(case, reuse):
+    check_against_reference(case, reuse)
 
 
 def test_random_cases_cover_the_interesting_situations():
@@ -207,6 +248,102 @@ def test_random_cases_cover_the_interesting_situations():
     for key in ("len1", "len2", "init", "flicker", "multi", "no_event", "zero", "constraints_ok", "alpha_cut"):
         assert seen[key] >= 3, (key, seen)
     assert seen["ok"] >= 100, seen
+
+
+def test_random_cases_exercise_reuse():
+    """With reuse, the sweep brings pieces back from several groups, and with alpha < 1 they win and lose
+    places in KeepShortest against the pieces of the paper's groups."""
+    seen = {"brought": 0, "other_start": 0, "reused_cut": 0, "displaces": 0, "reused_kept": 0}
+    for seed in range(240):
+        c = make_case(seed)
+        try:
+            on = ref.reference_refine(c.eps, c.alpha, c.constraints, n=c.n, reuse=True)
+            off = ref.reference_refine(c.eps, c.alpha, c.constraints, n=c.n)
+        except ref.ReferenceRefusal:
+            continue
+        brought = on["reused_pieces"]
+        seen["brought"] += bool(brought)
+        seen["other_start"] += len({p.group[0] for p in brought}) > 1
+        kept_reused = sum(on["reused"])
+        seen["reused_kept"] += kept_reused > 0
+        seen["reused_cut"] += kept_reused < sum(p.length for p in brought)
+        paper_kept = {row[:2] for row, r in zip(on["refined"], on["reused"]) if not r}
+        seen["displaces"] += bool({row[:2] for row in off["refined"]} - paper_kept)
+    for key, count in seen.items():
+        assert count >= 5, (key, seen)
+
+
+def test_reuse_is_off_by_default_and_the_paper_rows_stay_with_alpha_1():
+    """Without reuse the pipeline is the paper's six stages; with it and alpha = 1, the rows not brought
+    back are exactly the paper's, relabelled the same."""
+    assert [type(t) for t in make_refine_pipeline(ref.bit_spec(2)).transforms] == [
+        LabelRM, SplitGroup, EventOrder, Splice, KeepShortest, CounterfactualRelabel]
+    assert ReuseAbandoned in [type(t) for t in make_refine_pipeline(ref.bit_spec(2), reuse=True).transforms]
+    compared = 0
+    for seed in range(240):
+        c = make_case(seed)
+        td, spec = ref.episodes_to_td(c.eps, c.n, episode_ids=c.ids, seed=len(c.eps))
+        try:
+            off, off_report = refine(td, spec, 1.0, c.constraints)
+        except RMError:
+            continue
+        on, on_report = refine(td, spec, 1.0, c.constraints, reuse=True)
+        paper = on[~on["reused"]]
+        keys = ["source_episode", "t", "rm_state", ("next", "rm_state"), ("next", "reward"), ("next", "terminated"),
+                ("next", "truncated"), "action", "observation"]
+        assert (paper.select(*keys) == off.select(*keys)).all()
+        assert "reused" not in off.keys() and "reused" not in off_report.stages
+        assert on_report.stages["ordered"] == off_report.stages["ordered"] == off_report.stages["shorter"]
+        compared += on.batch_size[0] > off.batch_size[0]
+    assert compared >= 20
+
+
+MICROWAVE, KETTLE = frozenset({1}), frozenset({2})
+BOTH = MICROWAVE | KETTLE
+
+
+def kettle_first(tail: int) -> list:
+    """Two episodes in the best order (microwave, kettle), then one kettle first, its second piece ``tail`` steps."""
+    in_order = [frozenset(), frozenset(), MICROWAVE, MICROWAVE, BOTH]
+    return [in_order, in_order, [frozenset(), KETTLE, *[KETTLE] * (tail - 1), BOTH]]
+
+
+@pytest.mark.parametrize("tail,alpha,kept", [(2, 1.0, "A0 A1 B0 B1 K M"), (2, 0.5, "A0 A1 B0 K"),
+                                             (1, 0.5, "A0 M B0 K")])
+def test_reused_pieces_are_relabelled_in_the_state_before_their_event(tail, alpha, kept):
+    """Episodes 0 and 1 are A (e0 -> microwave, 2 steps) then B (microwave -> kettle, 2 steps); episode 2 is
+    K (e0 -> kettle, 1 step) then M (kettle -> microwave, ``tail`` steps). K joins B's group in
+    u_1 = (microwave), M joins A's in u_0, with Algorithm 2's states, rewards and terminals; at alpha 0.5
+    each group keeps 2 of its 3 pieces, the shortest, ties in dataset order."""
+    td, spec = ref.episodes_to_td(kettle_first(tail), 2, names=["microwave", "kettle"])
+    out, report = refine(td, spec, alpha, reuse=True)
+    assert report.order == ["microwave", "kettle"]
+    assert report.reuse["groups"] == {"e0->microwave": 1, "microwave->kettle": 1}
+    assert report.reuse["group_rows"] == {"e0->microwave": tail, "microwave->kettle": 1}
+    assert report.stages["ordered"] == 8 and report.stages["reused"] == 9 + tail
+    u0, u1, u2 = (0, 0), (1, 0), (1, 2)
+    pieces = {"K": [(2, 0, u1, u2, True, 0.0, True, False)],
+              "M": [(2, t, u0, u1 if t == tail else u0, True, 0.0 if t == tail else -1.0, False, t == tail)
+                    for t in range(1, tail + 1)]}
+    for e in (0, 1):
+        pieces[f"A{e}"] = [(e, 0, u0, u0, False, -1.0, False, False), (e, 1, u0, u1, False, 0.0, False, True)]
+        pieces[f"B{e}"] = [(e, 2, u1, u1, False, -1.0, False, False), (e, 3, u1, u2, False, 0.0, True, False)]
+    expected = sorted(row for name in kept.split() for row in pieces[name])
+    rows = table(out, "source_episode", "t", "rm_state", ("next", "rm_state"), "reused")
+    flags = [out["next", k].flatten().tolist() for k in ("reward", "terminated", "truncated")]
+    assert sorted(row + tuple(f[i] for f in flags) for i, row in enumerate(rows)) == expected
+    assert "Reused Sub-traj." in report.table() and "e0->microwave: 1" in report.table()
+
+
+def test_reuse_stage_needs_the_order_and_a_bool():
+    td, spec = ref.episodes_to_td(kettle_first(2), 2)
+    x = SplitGroup()(LabelRM(spec)(td))
+    with pytest.raises(RMError, match=r"ReuseAbandoned needs key\(s\) \['group_rank'\]"):
+        ReuseAbandoned(spec.names)(x)
+    with pytest.raises(RMError, match="reuse must be true or false, got 'yes'"):
+        make_refine_pipeline(spec, reuse="yes")
+    with pytest.raises(RMError, match="reuse must be true or false"):
+        refine(td, spec, reuse=1)
 
 
 # --------------------------------------------------------------------------------------------

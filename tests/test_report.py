@@ -18,6 +18,7 @@ import yaml
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.errors import RMError
 from rm_torchrl.report import dataset_label, find_run_dirs, group_runs, load_runs, method_label, read_run, tidy
+from rm_torchrl.report.runs import method_option
 from rm_torchrl.report.tables import results_table, stages_table
 
 pytest.importorskip("matplotlib")
@@ -43,15 +44,18 @@ RECIPE_NAMES = {"BC": "{d}-bc", "BCQ": "{d}-bcq", "IQL": "{d}-iql", "CQL": "{d}_
 
 
 def write_run(root: Path, name: str, seed: int, method: str, refine: bool, score: str, finals: dict,
-              steps=None, stages: dict | None = None, source: str = "") -> Path:
-    """A run directory as the trainer writes it; ``finals`` maps each evaluated step to the metric."""
+              steps=None, stages: dict | None = None, source: str = "", reuse: bool = False) -> Path:
+    """A run directory as the trainer writes it; ``finals`` maps each evaluated step to the metric.
+
+    ``data.reuse`` is written only when ``reuse`` (runs from before the reuse stage have no such key)."""
     steps = tuple(sorted(finals)) if steps is None else steps
     run = root / f"{name}-seed{seed}"
     (run / "logs" / "scalars").mkdir(parents=True)
     recipe = {
         "name": name, "seed": seed, "out": str(root), "resume": False,
         "data": {"source": source or f"../shared/data/d4rl/{name}.hdf5", "episode_ends": "auto",
-                 "refine": refine, "events": "door" if refine else "", "alpha": 0.5, "constraints": []},
+                 "refine": refine, "events": "door" if refine else "", "alpha": 0.5, "constraints": [],
+                 **({"reuse": True} if reuse else {})},
         "method": {"name": method},
         "trainer": {"steps": max(steps, default=6000), "batch_size": 256},
         "eval": {"env": "AdroitHandDoor-v1", "every": 2000, "episodes": 10, "score": score},
@@ -129,6 +133,7 @@ def table_rows(text: str) -> dict[str, list[str]]:
     ("door-human", "door-human"), ("door-human-bc", "door-human"), ("door-human_cql", "door-human"),
     ("door-human-iql-raw", "door-human"), ("door-human-seed3", "door-human"),
     ("door-human-v0-BCQ-seed1", "door-human-v0"), ("iql", "iql"), ("kitchen-mixed", "kitchen-mixed"),
+    ("door-human-ours-reuse", "door-human"), ("door-human-v0-ours-reuse-seed2", "door-human-v0"),
 ])
 def test_dataset_label_from_name(name, expected):
     assert dataset_label({"name": name, "data": {"source": "x.hdf5"}}) == expected
@@ -150,6 +155,17 @@ def test_dataset_label_from_source(source, expected):
 ])
 def test_method_label(method, refine, expected):
     assert method_label({"method": {"name": method}, "data": {"refine": refine}}) == expected
+
+
+@pytest.mark.parametrize("method, expected, option", [
+    ("ours-reuse", "ours-reuse", "ours-reuse"), ("bc", "BC (refined, reuse)", "bc-refined-reuse"),
+    ("iql", "IQL (refined, reuse)", "iql-refined-reuse"),
+])
+def test_method_label_with_the_reuse_stage(method, expected, option):
+    """The reuse stage (beyond the paper) never shares a column with the paper's refinement."""
+    assert method_label({"method": {"name": method}, "data": {"refine": True, "reuse": True}}) == expected
+    assert method_option(expected) == option
+    assert method_option("Ours") == "ours" and method_option("BC (refined)") == "bc-refined"
 
 
 # --- Table 1 ---------------------------------------------------------------------------------
@@ -238,6 +254,49 @@ def test_table2_range_when_refined_runs_disagree(tmp_path):
     rows = table_rows(stages_table(load_runs([tmp_path])))
     assert rows["Shorter Traj."] == ["2,261–3,000"]
     assert rows["Original Dataset"] == ["6,704"]
+
+
+REUSED_STAGES = dict(STAGES["kitchen-partial"], reused=98690, shorter=45000)
+
+
+def test_ours_reuse_is_its_own_method_and_table2_column(tmp_path, capsys):
+    """Runs of ours-reuse beside ours (whose reports, like those of old runs, have no "reused" stage): Table 1
+    gets an ours-reuse column after Ours, Table 2 a column of its own and the row Reused Sub-traj."""
+    for seed in SEEDS:
+        write_run(tmp_path, "kitchen-partial-ours", seed, "ours", True, "kitchen", {6000: 3.0 + seed},
+                  stages=STAGES["kitchen-partial"])
+        write_run(tmp_path, "kitchen-partial-ours-reuse", seed, "ours-reuse", True, "kitchen", {6000: 2.0 + seed},
+                  stages=REUSED_STAGES, reuse=True)
+        write_run(tmp_path, "kitchen-partial-iql", seed, "iql", False, "kitchen", {6000: 1.0 + seed})
+    out = tmp_path / "out"
+    assert cli_report.run(args(tmp_path, out=out)) == 0
+    capsys.readouterr()
+    text = (out / "results.md").read_text()
+    rows = table_rows(text)
+    assert rows["Dataset"] == ["IQL", "Ours", "ours-reuse"]
+    assert rows["kitchen-partial"][1].startswith("**4.0 ± 1.0**") and rows["kitchen-partial"][2].startswith("3.0 ± 1.0")
+    assert rows["Procedure"] == ["kitchen-partial", "kitchen-partial (reuse)"]
+    assert rows["Ordered Events"] == ["50,114 (36.8%)", "50,114 (36.8%)"]
+    assert rows["Reused Sub-traj."] == ["–", "98,690 (72.4%)"]
+    assert rows["Shorter Traj."] == ["22,682 (16.6%)", "45,000 (33.0%)"]
+    assert list(rows).index("Ordered Events") < list(rows).index("Reused Sub-traj.") < list(rows).index("Shorter Traj.")
+    assert "ours-reuse = Ours on the dataset refined with the reuse stage" in text
+    aggregates = json.loads((out / "aggregates.json").read_text())
+    assert {c["method"] for c in aggregates["cells"]} == {"ours", "ours-reuse", "iql"}
+    assert (out / "dataset_sizes.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_table2_has_no_reused_row_without_the_stage(reported, report_output):
+    _, out = reported
+    assert "Reused Sub-traj." not in (out / "results.md").read_text()
+    assert "Reused Sub-traj." not in stages_table(load_runs([reported[0]]))
+
+
+def test_error_reused_stage_not_a_number(tmp_path):
+    write_run(tmp_path, "door-human", 0, "ours-reuse", True, "door", {6000: 1.0}, reuse=True,
+              stages=dict(STAGES["door-human"], reused="many"))
+    with pytest.raises(RMError, match="'stages' holds 'reused' .* must be a number, got 'many'"):
+        load_runs([tmp_path])
 
 
 # --- figures and files -----------------------------------------------------------------------

@@ -48,7 +48,8 @@ def steps_of(run_dir: Path) -> int:
 def test_every_dataset_composes_with_every_method(data, method):
     recipe = load_recipe(None, [f"dataset={data}", f"method={method}", "seed=2", "out=OUT"])
     assert recipe.run_dir == Path("OUT") / f"{data}-{method}-seed2"
-    assert recipe.method.name == method and recipe.data.refine == (method == "ours")
+    assert recipe.method.name == method and recipe.data.refine == method.startswith("ours")
+    assert recipe.data.reuse == (method == "ours-reuse")
     assert recipe.eval.env and recipe.data.events and recipe.data.source
     assert set(recipe.to_dict()["method"]) <= {"name", "iql", "cql", "bcq"}
 
@@ -69,14 +70,27 @@ STUDIED = {d: "ours-kitchen" for d in DATASETS if "kitchen" in d} | {
     d: "ours-relocate" for d in DATASETS if "relocate" in d}
 
 
+@pytest.mark.parametrize("method", ["ours", "ours-reuse"])
 @pytest.mark.parametrize("data", sorted(STUDIED))
-def test_studied_datasets_give_ours_their_temperature(data):
-    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice; the command line still wins."""
+def test_studied_datasets_give_ours_their_temperature(data, method):
+    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice, for ours-reuse too (tuned_as);
+    the command line still wins."""
     study = yaml.safe_load((RECIPES / "tuned" / f"{STUDIED[data]}.yaml").read_text())
     chosen = study["method"]["iql"]["temperature"]
-    assert load_recipe(None, [f"dataset={data}", "method=ours"]).method.iql.temperature == chosen
-    assert load_recipe(None, [f"dataset={data}", "method=ours", "method.iql.temperature=7"]).method.iql.temperature == 7
-    assert load_recipe(None, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 10.0
+    assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == chosen
+    assert load_recipe(None, [f"dataset={data}", f"method={method}", "method.iql.temperature=7"]).method.iql.temperature == 7
+    assert load_recipe(None, ["dataset=door-human-v0", f"method={method}"]).method.iql.temperature == 10.0
+
+
+@pytest.mark.parametrize("data", DATASETS)
+def test_ours_reuse_is_ours_with_the_reuse_stage(data):
+    """The same recipe as ours but for the method's name, data.reuse and the run's name."""
+    ours = load_recipe(None, [f"dataset={data}", "method=ours"]).to_dict()
+    reuse = load_recipe(None, [f"dataset={data}", "method=ours-reuse"]).to_dict()
+    assert reuse["name"] == f"{ours['data']['name']}-ours-reuse" and reuse["data"]["reuse"] and not ours["data"]["reuse"]
+    for recipe in (ours, reuse):
+        del recipe["name"], recipe["data"]["reuse"], recipe["method"]["name"]
+    assert reuse == ours
 
 
 def test_a_tuned_file_reaches_its_own_method_only(tmp_path):
@@ -87,7 +101,8 @@ def test_a_tuned_file_reaches_its_own_method_only(tmp_path):
         "# @package _global_\nmethod:\n  iql:\n    temperature: 3.25\n")
     train = recipes / "train.yaml"
     assert load_recipe(train, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 3.25
-    for baseline in set(METHODS) - {"ours"}:
+    assert load_recipe(train, ["dataset=door-human-v0", "method=ours-reuse"]).method.iql.temperature == 3.25
+    for baseline in set(METHODS) - {"ours", "ours-reuse"}:
         assert (load_recipe(train, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"]
                 == load_recipe(None, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"])
 
@@ -99,7 +114,7 @@ def test_only_the_studied_datasets_have_tuned_files():
 
 @pytest.mark.parametrize("override,message", [
     ("dataset=nope", "Could not find 'dataset/nope'"),
-    ("method=sac", "Could not find 'method/sac'; available options in 'method': bc, bcq, cql, iql, ours$"),
+    ("method=sac", "Could not find 'method/sac'; available options in 'method': bc, bcq, cql, iql, ours, ours-reuse$"),
     ("optim.weight_decay_q=1e-3x", "optim.weight_decay_q"),
 ])
 def test_bad_choices_are_one_line_errors(override, message):

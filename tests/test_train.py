@@ -80,6 +80,36 @@ def test_raw_data_baseline_has_no_rm_input(tmp_path, dataset):
     assert not (run_dir / "refine_report.json").exists()
 
 
+def test_ours_reuse_trains_like_ours_on_the_reused_data(tmp_path, dataset):
+    """The same IQL build as ours; the run's report has the reuse stage and the report labels it ours-reuse."""
+    from rm_torchrl.methods.registry import METHODS
+    from rm_torchrl.report.runs import method_label, read_recipe, read_refine_report
+
+    assert METHODS["ours-reuse"] == METHODS["ours"]
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["method.name=ours-reuse", "data.reuse=true",
+                                                          "trainer.steps=10", "trainer.log_every=5"])
+    assert recipe.run_dir.name == "tiny-seed0" and recipe.to_dict()["method"].keys() == {"name", "iql"}
+    run_dir = train(recipe, progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=False)["step"] == 10
+    written, report = read_recipe(run_dir), read_refine_report(run_dir)
+    assert method_label(written) == "ours-reuse" and written["data"]["reuse"] is True
+    assert list(report["stages"]) == ["original", "split", "ordered", "reused", "shorter"] and "reuse" in report
+    assert read_scalar(run_dir, "loss_value")
+
+
+def test_a_recipe_file_with_a_string_for_a_bool_is_refused(tmp_path, dataset, capsys):
+    """OmegaConf would read "yes" as true; a recipe says true or false."""
+    path = make_recipe(tmp_path, dataset)
+    path.write_text(path.read_text().replace("alpha: 0.5}", 'alpha: 0.5, reuse: "yes"}'))
+    with pytest.raises(RMError, match=r"^recipe: data.reuse must be true or false, got 'yes'$"):
+        load_recipe(path)
+    assert main(["train", str(path), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err == "rmrl train: error: recipe: data.reuse must be true or false, got 'yes'\n"
+    path.write_text(path.read_text().replace('"yes"', "true"))
+    assert load_recipe(path).data.reuse is True
+
+
 def test_resume_reaches_the_same_parameters(tmp_path, dataset):
     straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight"])
     train(straight, progress=False)
@@ -110,6 +140,13 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("trainer.steps=abc", "trainer.steps: Value 'abc' of type 'str' could not be converted to Integer"),
         ("method.iql.expectyle=0.5", r"unknown key method.iql.expectyle"),
         (("method.name=ours", "data.refine=false"), "method ours is IQL on the refined data"),
+        (("method.name=ours-reuse", "data.reuse=true", "data.refine=false"), "method ours-reuse is IQL on the refined"),
+        ("method.name=ours-reuse", "method ours-reuse is ours on data refined with the reuse stage; it needs data.reuse"),
+        (("method.name=ours", "data.reuse=true"), "method ours is the paper's refinement; for data.reuse=true use"),
+        (("data.reuse=true", "data.refine=false"), "data.reuse brings back .* it needs data.refine=true$"),
+        ("data.reuse=yes", r"^recipe: data.reuse must be true or false, got 'yes'$"),
+        ("data.reuse=1", r"^recipe: data.reuse must be true or false, got 1$"),
+        ("data.refine=on", r"^recipe: data.refine must be true or false, got 'on'$"),
         ("trainer.device=tpu", "trainer.device must be auto | cpu | cuda | cuda:N"),
         ("method.name=sac", "method.name must be one of"),
         ("data.alpha=1.5", "alpha must lie in"),

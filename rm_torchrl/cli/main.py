@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", help="fraction of shortest sub-trajectories kept per group, in (0, 1] (default 1)")
     p.add_argument("--constraint", action="append", type=_constraint, metavar="A<B",
                    help="event A must come before event B in the chosen order (repeatable)")
+    p.add_argument("--reuse", action=argparse.BooleanOptionalAction, default=None,
+                   help="beyond the paper: bring back the sub-trajectories the splice abandons, in the group of "
+                        "their new event on the best order (default: off, the paper's refinement)")
     p.add_argument("--out", metavar="DIR", help="output directory (data/ and report.json)")
     p.add_argument("--minari-name", metavar="NAME",
                    help="also write the refined data as the local Minari dataset NAME (namespace/name-vN): one "

@@ -17,12 +17,13 @@ from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.segments import run_starts
 
 #: Recipe keys and their defaults (None: required).
-RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "auto", "constraints": [], "out": None}
+RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "auto", "constraints": [], "out": None,
+               "reuse": False}
 
 
-def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine"):
+def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine", reuse: bool = False):
     """Runs the pipeline stage by stage under a progress bar; returns ``(refined, report)``."""
-    pipeline = make_refine_pipeline(spec, float(check_alpha(alpha)), constraints)
+    pipeline = make_refine_pipeline(spec, float(check_alpha(alpha)), constraints, reuse=reuse)
     with progress_bar(total=len(pipeline.transforms), desc=desc, unit="stage", file=sys.stderr, leave=False) as bar:
 
         def on_stage(stage):
@@ -49,6 +50,8 @@ def load_recipe(path: str) -> dict:
     for key in ("dataset", "events", "out"):
         if key in data and not isinstance(data[key], str):
             raise RMError(f"recipe {path}: {key} must be a string, got {data[key]!r}")
+    if "reuse" in data and not isinstance(data["reuse"], bool):
+        raise RMError(f"recipe {path}: reuse must be true or false, got {data['reuse']!r}")
     for key in ("dataset", "events"):
         value = data.get(key)
         if isinstance(value, str) and Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml"):
@@ -62,7 +65,7 @@ def resolve_options(args) -> dict:
     if args.config:
         options.update(load_recipe(args.config))
     flags = {"dataset": args.dataset, "events": args.events, "alpha": args.alpha,
-             "episode_ends": args.episode_ends, "constraints": args.constraint, "out": args.out}
+             "episode_ends": args.episode_ends, "constraints": args.constraint, "out": args.out, "reuse": args.reuse}
     options.update({k: v for k, v in flags.items() if v is not None})
     missing = [k for k, v in options.items() if v is None]
     if missing:
@@ -79,7 +82,7 @@ def run(args) -> int:
     spec = load_event_spec(opts["events"])
     print(f"loading {opts['dataset']} ...", file=sys.stderr)
     data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])
-    refined, report = refine_with_progress(data, spec, opts["alpha"], opts["constraints"])
+    refined, report = refine_with_progress(data, spec, opts["alpha"], opts["constraints"], reuse=opts["reuse"])
     meta = {"dataset": opts["dataset"], "episode_ends": opts["episode_ends"], **report.to_dict()}
     out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
     print(report.table())

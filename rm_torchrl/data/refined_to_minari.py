@@ -13,11 +13,11 @@ Layout of an episode of T transitions (Minari's: T + 1 observations, T of everyt
   pairs a step's info with the step's observation).
 
 The dataset metadata (``rm_torchrl_refined``) records the source, event spec, alpha, best order,
-group sizes, Table 2 stages and package versions. Like ``rmrl import-d4rl`` it is built in a hidden
-temporary cache and renamed into place only when complete, and marked as an export: ``overwrite``
-(``rmrl refine --overwrite-minari``) replaces only an earlier export, never a downloaded or imported
-dataset. ``load_dataset`` reads it back already refined: ``rmrl train`` on it uses its RM states
-instead of refining again.
+group sizes, Table 2 stages, what the reuse stage brought back (when it ran) and package versions. Like
+``rmrl import-d4rl`` it is built in a hidden temporary cache and renamed into place only when complete,
+and marked as an export: ``overwrite`` (``rmrl refine --overwrite-minari``) replaces only an earlier
+export, never a downloaded or imported dataset. ``load_dataset`` reads it back already refined:
+``rmrl train`` on it uses its RM states instead of refining again.
 """
 from __future__ import annotations
 
@@ -106,6 +106,7 @@ def export_refined_minari(data: TensorDictBase, report: dict, name: str, events:
         "order": report.get("order"),
         "groups": report.get("groups"),
         "stages": report.get("stages"),
+        **({"reuse": report["reuse"]} if report.get("reuse") else {}),
         "episodes": len(pieces),
         "transitions": int(data.batch_size[0]),
         "observation_keys": obs_keys or ["observation"],

@@ -12,14 +12,15 @@ from dataclasses import dataclass, field
 from typing import List, Protocol
 
 #: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
-#: on the refined data with the RM state as policy input; the others are the paper's baselines.
-METHOD_SECTIONS = {"ours": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
+#: on the refined data with the RM state as policy input; ``ours-reuse`` the same on data refined with the
+#: reuse stage (beyond the paper); the others are the paper's baselines.
+METHOD_SECTIONS = {"ours": "iql", "ours-reuse": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
 ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
 
 
 @dataclass
 class IQLConfig:
-    """IQL (Kostrikov et al. 2021), used by ``ours`` and ``iql``."""
+    """IQL (Kostrikov et al. 2021), used by ``ours``, ``ours-reuse`` and ``iql``."""
 
     expectile: float = 0.7  # tau
     temperature: float = 0.5  # inverse temperature beta of the advantage weights
@@ -45,7 +46,7 @@ class BCQConfig:
 
 @dataclass
 class MethodConfig:
-    name: str = "iql"  # ours | iql | bc | cql | bcq
+    name: str = "iql"  # ours | ours-reuse | iql | bc | cql | bcq
     iql: IQLConfig = field(default_factory=IQLConfig)
     cql: CQLConfig = field(default_factory=CQLConfig)
     bcq: BCQConfig = field(default_factory=BCQConfig)

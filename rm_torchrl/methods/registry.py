@@ -90,6 +90,7 @@ def _bcq(m: BCQConfig, net: NetworkConfig, o: OptimConfig, trainer: TrainerSecti
 _IQL_TERMS = ("loss_actor", "loss_qvalue", "loss_value")
 METHODS = {
     "ours": MethodSpec(_iql, _IQL_TERMS),  # IQL on the refined data, the RM state in the policy input
+    "ours-reuse": MethodSpec(_iql, _IQL_TERMS),  # the same on data refined with the reuse stage (data.reuse)
     "iql": MethodSpec(_iql, _IQL_TERMS),
     "bc": MethodSpec(_bc, ("loss_actor",)),
     "cql": MethodSpec(_cql, ("loss_actor", "loss_qvalue", "loss_cql", "loss_alpha")),

@@ -74,3 +74,21 @@ def take_rows(td: TensorDictBase, rows: torch.Tensor) -> TensorDictBase:
     if rows.numel() == td.batch_size[0]:
         return td
     return td.apply(lambda x: x.index_select(0, rows), batch_size=[rows.numel()])
+
+
+def event_name(names, k: int) -> str:
+    """The name of event ``k`` (1-based; 0 is ``e0``)."""
+    return "e0" if k == 0 else names[k - 1]
+
+
+def group_name(names, a: int, b: int) -> str:
+    """How reports name the group T^{a -> b}: ``"a->b"``."""
+    return f"{event_name(names, a)}->{event_name(names, b)}"
+
+
+def order_from_ranks(rank: torch.Tensor, group_to: torch.Tensor, n: int) -> torch.Tensor:
+    """The best order read back from ranked rows: entry i - 1 is the event ending the group of rank i
+    (the rows of rank i all end in e^i), 0 where no row has rank i; rows of rank 0 are ignored."""
+    order = torch.zeros(n + 1, dtype=torch.long)
+    order[rank] = group_to
+    return order[1:]

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.refine.base import DatasetTransform
+from rm_torchrl.refine.base import DatasetTransform, event_name, group_name
 from rm_torchrl.segments import run_starts
 
 
@@ -165,7 +165,7 @@ class EventOrder(DatasetTransform):
             if cycle:
                 raise RMError("every event order scores 0 under the given constraints: they form a cycle, "
                               "so no order satisfies them: " + " < ".join(self._name(k) for k in cycle))
-            sizes = {f"{self._name(a)}->{self._name(b)}": c for (a, b), c in self.group_sizes.items()}
+            sizes = {group_name(self.event_names, a, b): c for (a, b), c in self.group_sizes.items()}
             raise RMError(
                 "every event order scores 0: no order of all events has a non-empty group at each "
                 f"step{' under the given constraints' if self.constraints else ''}; group sizes: {sizes}"
@@ -179,11 +179,11 @@ class EventOrder(DatasetTransform):
         return td
 
     def _name(self, k: int) -> str:
-        return "e0" if k == 0 else self.event_names[k - 1]
+        return event_name(self.event_names, k)
 
     def _extra_stats(self) -> dict:
         return {
             "order": [self._name(k) for k in self.order],
             "order_score": self.score,
-            "groups": {f"{self._name(a)}->{self._name(b)}": c for (a, b), c in sorted(self.group_sizes.items())},
+            "groups": {group_name(self.event_names, a, b): c for (a, b), c in sorted(self.group_sizes.items())},
         }

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from rm_torchrl.refine.base import DatasetTransform
+from rm_torchrl.refine.base import DatasetTransform, order_from_ranks
 from rm_torchrl.segments import run_ends, run_index, run_starts
 from rm_torchrl.rm.machine import EventOrderedRM
 
@@ -34,8 +34,7 @@ class CounterfactualRelabel(DatasetTransform):
         n = td.get(self.rm_key).shape[-1]
         rm = EventOrderedRM(n)
         rank = td.get("group_rank")
-        order = torch.zeros(n, dtype=torch.long)
-        order[rank - 1] = td.get("group_to")
+        order = order_from_ranks(rank, td.get("group_to"), n)
         canonical = torch.zeros(n + 1, n, dtype=torch.long)
         for i in range(1, n + 1):
             canonical[i, :i] = order[:i]

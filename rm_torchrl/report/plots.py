@@ -14,14 +14,17 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.report.runs import OURS, STAGES, Group, Run, datasets, methods
+from rm_torchrl.report.runs import OURS, OURS_REUSE, Group, Run, datasets, methods
 from rm_torchrl.report.stats import CONFIDENCE, Aggregates
 from rm_torchrl.report.tables import STAGE_LABELS, stage_sizes
+from rm_torchrl.run_format import stage_rows
 
 #: Fixed colours so a method looks the same in every panel and every report.
-METHOD_COLORS = {"BC": "#1f77b4", "BCQ": "#ff7f0e", "IQL": "#2ca02c", "CQL": "#9467bd", OURS: "#d62728"}
+METHOD_COLORS = {"BC": "#1f77b4", "BCQ": "#ff7f0e", "IQL": "#2ca02c", "CQL": "#9467bd", OURS: "#d62728",
+                 OURS_REUSE: "#ff9896"}
 _SPARE_COLORS = ("#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf", "#393b79", "#637939")
-STAGE_COLORS = ("#c6dbef", "#6baed6", "#2171b5", "#08306b")
+STAGE_COLORS = {"original": "#c6dbef", "split": "#6baed6", "ordered": "#2171b5", "reused": "#fd8d3c",
+                "shorter": "#08306b"}
 DPI = 150
 
 
@@ -109,7 +112,8 @@ def plot_learning_curves(groups: Iterable[Group], path: str | os.PathLike, ncols
 
 
 def plot_dataset_sizes(runs: Iterable[Run], path: str | os.PathLike) -> Path:
-    """Grouped bars: per dataset, the transitions left after each refinement stage (Table 2).
+    """Grouped bars: per dataset, the transitions left after each refinement stage (Table 2; runs with the
+    reuse stage in a group of their own, :func:`~rm_torchrl.report.tables.stage_column`).
 
     The y axis is logarithmic when the datasets differ in size by more than 20 times, so a
     6,704-transition dataset stays visible next to a million-transition one.
@@ -118,18 +122,20 @@ def plot_dataset_sizes(runs: Iterable[Run], path: str | os.PathLike) -> Path:
     if not sizes:
         raise RMError("no refined runs (data.refine: true with a refine_report.json) to plot dataset sizes for")
     names = list(sizes)
+    stages = stage_rows(sizes.values())
     fig = _figure(figsize=(max(6.0, 2.5 + 1.6 * len(names)), 4.2))
     ax = fig.subplots()
-    width = 0.8 / len(STAGES)
+    width = 0.8 / len(stages)
     x = np.arange(len(names))
-    values = np.array([[sizes[d][s] for s in STAGES] for d in names], dtype=float)
+    values = np.array([[sizes[d].get(s, 0) for s in stages] for d in names], dtype=float)  # 0: a stage not run
     positive = values[values > 0]
     log = positive.size > 0 and positive.max() / positive.min() > 20
-    for i, stage in enumerate(STAGES):
-        pos = x + (i - (len(STAGES) - 1) / 2) * width
-        bars = ax.bar(pos, values[:, i], width, label=STAGE_LABELS[stage], color=STAGE_COLORS[i],
+    for i, stage in enumerate(stages):
+        pos = x + (i - (len(stages) - 1) / 2) * width
+        bars = ax.bar(pos, values[:, i], width, label=STAGE_LABELS[stage], color=STAGE_COLORS[stage],
                       edgecolor="#333333", linewidth=0.4)
-        ax.bar_label(bars, labels=[compact(v) for v in values[:, i]], fontsize=7, padding=2, rotation=90)
+        ax.bar_label(bars, labels=[compact(v) if stage in sizes[d] else "" for v, d in zip(values[:, i], names)],
+                     fontsize=7, padding=2, rotation=90)
     from matplotlib.ticker import FuncFormatter
 
     if log:

@@ -10,17 +10,19 @@ Labels (documented rules, so a table never depends on how a directory happens to
 
 * **dataset** -- the recipe ``name`` (the run directory is ``{name}-seed{seed}``) with a trailing
   ``-seed<N>`` removed and then any trailing method tokens removed (``-iql``, ``-bc``, ``-cql``,
-  ``-bcq``, ``-ours``, ``-refined``, ``-rm``, ``-raw``, ``-baseline``; ``_`` works as separator
-  too), so ``door-human``, ``door-human-bc`` and ``door-human-iql-raw`` all label ``door-human``.
+  ``-bcq``, ``-ours``, ``-reuse``, ``-refined``, ``-rm``, ``-raw``, ``-baseline``; ``_`` works as separator
+  too), so ``door-human``, ``door-human-bc``, ``door-human-ours-reuse`` and ``door-human-iql-raw`` all
+  label ``door-human``.
   When the name is empty or the default ``run``, or with ``dataset_from="source"``, the label is
   ``data.source``'s stem instead: ``.../door-human-v0.hdf5`` -> ``door-human-v0``,
   ``minari:D4RL/door/human-v2`` -> ``door-human-v2``.
 * **method** -- ``Ours`` for ``method.name: ours`` (IQL on refined data, the paper's method; also
-  ``iql`` with ``data.refine: true``, as runs recorded it before);
+  ``iql`` with ``data.refine: true``, as runs recorded it before); ``ours-reuse`` for ``method.name:
+  ours-reuse`` (ours on data refined with the reuse stage, beyond the paper);
   otherwise the upper-cased ``method.name`` (``BC``, ``BCQ``, ``IQL``, ``CQL``), with
-  `` (refined)`` appended when a baseline was itself trained on refined data, so refined and raw
-  runs never share a column. :func:`method_option` turns a label back into the recipe option (``ours``,
-  ``iql``) for aggregates.json.
+  `` (refined)`` (`` (refined, reuse)``) appended when a baseline was itself trained on refined data
+  (with the reuse stage), so refined and raw runs never share a column. :func:`method_option` turns a
+  label back into the recipe option (``ours``, ``ours-reuse``, ``iql``) for aggregates.json.
 * **metric** -- the final evaluation's ``score`` column when the recipe sets ``eval.score``
   (the D4RL normalisation), otherwise ``return_mean``.
 """
@@ -40,12 +42,13 @@ import numpy as np
 
 from rm_torchrl.errors import RMError, read_yaml
 from rm_torchrl.run_format import (EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR, RECIPE_FILE,  # noqa: F401
-                                   REFINE_FILE, REWARD_COLUMN, STAGES)
+                                   REFINE_FILE, REUSED, REWARD_COLUMN, STAGES)
 
 #: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
 METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
 OURS = "Ours"
-METHOD_TOKENS = ("iql", "bc", "cql", "bcq", "ours", "refined", "rm", "raw", "baseline")
+OURS_REUSE = "ours-reuse"  # beyond the paper: ours on data refined with the reuse stage
+METHOD_TOKENS = ("iql", "bc", "cql", "bcq", "ours", "reuse", "refined", "rm", "raw", "baseline")
 DATASET_FROM = ("name", "source")
 
 _SEED_SUFFIX = re.compile(r"[-_]seed\d+$", re.IGNORECASE)
@@ -88,24 +91,33 @@ def dataset_label(recipe: dict, dataset_from: str = "name") -> str:
 
 
 def method_label(recipe: dict) -> str:
-    """``Ours`` for IQL on refined data, else the upper-cased method (`` (refined)`` if refined)."""
+    """``Ours`` for IQL on refined data, ``ours-reuse`` for that method, else the upper-cased method
+    (`` (refined)`` if refined, `` (refined, reuse)`` with the reuse stage)."""
     name = str((recipe.get("method") or {}).get("name") or "iql").lower()
-    refined = bool((recipe.get("data") or {}).get("refine", False))
-    if name == "ours" or (refined and name == "iql"):  # runs from before method "ours" had its name
+    data = recipe.get("data") or {}
+    refined, reuse = bool(data.get("refine", False)), bool(data.get("reuse", False))
+    if name == OURS_REUSE:
+        return OURS_REUSE
+    if name == "ours" or (refined and name == "iql" and not reuse):  # runs from before method "ours" had its name
         return OURS
-    return name.upper() + (" (refined)" if refined else "")
+    return name.upper() + (" (refined, reuse)" if refined and reuse else " (refined)" if refined else "")
 
 
 def method_option(label: str) -> str:
     """The recipe's ``method`` option behind a label, for files read by programs: ``Ours`` -> ``ours``,
-    ``IQL`` -> ``iql``, ``BC (refined)`` -> ``bc-refined`` (kept apart from the raw ``bc``)."""
-    return "ours" if label == OURS else label.lower().replace(" (refined)", "-refined")
+    ``IQL`` -> ``iql``, ``BC (refined)`` -> ``bc-refined`` (kept apart from the raw ``bc``),
+    ``BC (refined, reuse)`` -> ``bc-refined-reuse``, ``ours-reuse`` as it is."""
+    if label == OURS:
+        return "ours"
+    return label.lower().replace(" (refined, reuse)", "-refined-reuse").replace(" (refined)", "-refined")
 
 
 def method_sort_key(label: str) -> tuple:
-    """Orders method labels like the paper's Table 1: BC, BCQ, IQL, CQL, others, Ours."""
+    """Orders method labels like the paper's Table 1: BC, BCQ, IQL, CQL, others, Ours, then ours-reuse."""
     if label == OURS:
         return (2, 0, label)
+    if label == OURS_REUSE:
+        return (2, 1, label)
     if label in METHOD_ORDER:
         return (0, METHOD_ORDER.index(label), label)
     return (1, 0, label)
@@ -325,6 +337,9 @@ def read_refine_report(run_dir: Path) -> dict | None:
     stages = report.get("stages") if isinstance(report, dict) else None
     if not isinstance(stages, dict) or any(not isinstance(stages.get(s), int) for s in STAGES):
         raise RMError(f"{path}: 'stages' must map each of {list(STAGES)} to a number of transitions")
+    if REUSED in stages and not isinstance(stages[REUSED], int):
+        raise RMError(f"{path}: 'stages' holds {REUSED!r} (the reuse stage's transitions), which must be a number, "
+                      f"got {stages[REUSED]!r}")
     return report
 
 

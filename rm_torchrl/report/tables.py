@@ -4,8 +4,8 @@ from __future__ import annotations
 from collections import Counter
 from typing import Iterable, Sequence
 
-from rm_torchrl.run_format import TABLE2_ROWS as STAGE_LABELS
-from rm_torchrl.report.runs import OURS, STAGES, Group, Run, datasets, group_runs, methods
+from rm_torchrl.run_format import REUSED, TABLE2_ROWS as STAGE_LABELS, stage_rows
+from rm_torchrl.report.runs import OURS, OURS_REUSE, Group, Run, datasets, group_runs, methods
 from rm_torchrl.report.stats import CONFIDENCE, SEED, Aggregates, Estimate
 
 MISSING = "–"
@@ -87,20 +87,26 @@ def nonfinite_lines(groups: Iterable[Group]) -> list[str]:
             for g in groups for r in g.nonfinite]
 
 
+def stage_column(run: Run) -> str:
+    """A refined run's Table 2 column: its dataset, with `` (reuse)`` when the reuse stage ran."""
+    return run.dataset + (" (reuse)" if REUSED in run.stages else "")
+
+
 def _stage_values(runs: Sequence[Run]) -> dict[str, dict[str, list[int]]]:
-    """dataset -> stage -> sorted distinct sizes over that dataset's refined runs."""
+    """column (:func:`stage_column`) -> stage -> sorted distinct sizes over its refined runs."""
     out: dict[str, dict[str, set]] = {}
     for run in runs:
         if run.stages is None:
             continue
-        per = out.setdefault(run.dataset, {s: set() for s in STAGES})
-        for s in STAGES:
-            per[s].add(int(run.stages[s]))
+        per = out.setdefault(stage_column(run), {})
+        for s in stage_rows([run.stages]):
+            per.setdefault(s, set()).add(int(run.stages[s]))
     return {d: {s: sorted(v) for s, v in per.items()} for d, per in sorted(out.items())}
 
 
 def stage_sizes(runs: Iterable[Run]) -> dict[str, dict[str, int]]:
-    """dataset -> stage -> transitions (the largest value when runs of a dataset disagree)."""
+    """column -> stage -> transitions (the largest value when its runs disagree); ``reused`` only in the
+    columns of runs with the reuse stage."""
     return {d: {s: v[-1] for s, v in per.items()} for d, per in _stage_values(list(runs)).items()}
 
 
@@ -109,7 +115,9 @@ def stages_table(runs: Iterable[Run]) -> str:
 
     Every stage after the first also shows the share of the original dataset. Only runs with a
     ``refine_report.json`` count; runs of one dataset that disagree (other alpha, other source)
-    show the range ``low–high``. Returns "" when no run was refined.
+    show the range ``low–high``. Runs with the reuse stage (beyond the paper) get their own column,
+    ``<dataset> (reuse)``, and the row ``Reused Sub-traj.``, which shows – elsewhere. Returns "" when
+    no run was refined.
     """
     runs = list(runs)
     values = _stage_values(runs)
@@ -117,9 +125,12 @@ def stages_table(runs: Iterable[Run]) -> str:
         return ""
     names = list(values)
     lines = [_row(["Procedure", *names]), "|---|" + "---:|" * len(names)]
-    for stage in STAGES:
+    for stage in stage_rows(values.values()):
         cells = []
         for d in names:
+            if stage not in values[d]:
+                cells.append(MISSING)
+                continue
             sizes = values[d][stage]
             text = f"{sizes[0]:,}" if len(sizes) == 1 else f"{sizes[0]:,}–{sizes[-1]:,}"
             original = values[d]["original"]
@@ -174,13 +185,16 @@ def describe(runs: Sequence[Run], groups: Sequence[Group], aggregates: Aggregate
     what[-1] += f", from {' and '.join(conventions)} rewards" + (
         " (D4RL's reward function; for Adroit v1 envs, their dense reward with D4RL's sign of the distance term)"
         if "d4rl" in conventions else " (the evaluation env's own reward)")
-    refined_baselines = any(g.method.endswith("(refined)") for g in groups)
+    refined_baselines = any(g.method.endswith(("(refined)", "(refined, reuse)")) for g in groups)
+    reuse = (f" {OURS_REUSE} = {OURS} on the dataset refined with the reuse stage (beyond the paper: the "
+             "sub-trajectories the splice abandons are brought back)." if any(g.method == OURS_REUSE for g in groups)
+             else "")
     lines.append(f"Cell: mean ± sample std over seeds (one seed: its value alone) of the final evaluation's "
                  f"{' and '.join(what)}; "
                  "the best mean of each dataset is in **bold**. "
                  + ("" if aggregates is None else iqm_note(aggregates) + " ")
                  + "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
-                 + (" unless marked (refined)." if refined_baselines else "."))
+                 + (" unless marked (refined)." if refined_baselines else ".") + reuse)
     return lines
 
 

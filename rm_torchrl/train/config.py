@@ -67,6 +67,7 @@ class DataConfig:
     source: str = ""  # .hdf5 path, minari:<id> or a local Minari name
     episode_ends: str = "auto"
     refine: bool = True  # the paper's method; False trains on the raw data (baselines)
+    reuse: bool = False  # beyond the paper: bring back the sub-trajectories the splice abandons (method ours-reuse)
     events: str = ""  # event spec, also used online by the RM env transform
     alpha: float = 1.0
     constraints: List[str] = field(default_factory=list)

@@ -14,6 +14,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.pipeline import refine
 from rm_torchrl.rm.machine import EventOrderedRM
+from rm_torchrl.run_format import REUSED
 from rm_torchrl.train.config import Recipe
 
 ENCODING_KEY = "rm_encoding"
@@ -82,11 +83,15 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
         if exported["events"]["names"] != list(spec.names):
             raise RMError(f"{recipe.data.source} was refined with the events {exported['events']['names']}, "
                           f"but data.events={recipe.data.events!r} declares {list(spec.names)}")
+        reused = REUSED in (exported.get("stages") or {})
+        if reused != recipe.data.reuse:
+            raise RMError(f"{recipe.data.source} was refined {'with' if reused else 'without'} the reuse stage, "
+                          f"but the recipe has data.reuse={str(recipe.data.reuse).lower()}")
         data = split_rm_state(raw)
-        report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha") if k in exported},
+        report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha", "reuse") if k in exported},
                   "events": list(spec.names), "refined_before": exported["source"]}
     elif use_rm:
-        data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints)
+        data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints, reuse=recipe.data.reuse)
         report = rep.to_dict()
     else:
         data = raw

@@ -42,6 +42,10 @@ ConfigStore.instance().store(name=SCHEMA, node=Recipe)
 OmegaConf.register_new_resolver("recipes_dir", lambda: str(RECIPES), replace=True)
 #: ``${embedded:door-human-v0.hdf5}``: a data file shipped inside the package (works from any directory).
 OmegaConf.register_new_resolver("embedded", lambda name: str(embedded_file(name)), replace=True)
+#: Method options that take another's tuned values (``recipes/tuned/<that>-<dataset>.yaml``, picked by
+#: ``${tuned_as:${method}}`` in ``train.yaml``): ours-reuse trains exactly like ours, on other data.
+TUNED_AS = {"ours-reuse": "ours"}
+OmegaConf.register_new_resolver("tuned_as", lambda method: TUNED_AS.get(method, method), replace=True)
 
 
 def hydra_overrides(overrides, path=None) -> list[str]:
@@ -123,6 +127,7 @@ def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
     """A composed config checked against the schema: typed sections, valid choices, finite numbers."""
     raw = _upgrade(OmegaConf.to_container(cfg, resolve=False))
     raw.pop("hydra", None)
+    _check_bools(raw)
     try:
         recipe = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(Recipe), raw))
     except OmegaConfBaseException as err:
@@ -133,6 +138,19 @@ def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
             setattr(recipe.data, attr, os.path.abspath(Path(base) / value))  # normalised where absolute
     validate(recipe)
     return recipe
+
+
+def _check_bools(raw: dict, node=Recipe, prefix: str = "") -> None:
+    """Refuses a boolean entry given as anything but true or false: the schema would read "yes", "on"
+    or 1 as true. Interpolations (``${...}``) are left to the schema."""
+    for f in dataclasses.fields(node):
+        value = raw.get(f.name) if isinstance(raw, dict) else None
+        if value is None:
+            continue
+        if dataclasses.is_dataclass(f.default_factory):
+            _check_bools(value, f.default_factory, f"{prefix}{f.name}.")
+        elif f.type in ("bool", bool) and not isinstance(value, bool) and not (isinstance(value, str) and "${" in value):
+            raise RMError(f"recipe: {prefix}{f.name} must be true or false, got {value!r}")
 
 
 def _allowed(key: str) -> list[str] | None:
@@ -211,8 +229,15 @@ def validate(recipe: Recipe) -> None:
         raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):
         raise RMError(f"recipe: trainer.device must be {DEVICES}, got {recipe.trainer.device!r}")
-    if recipe.method.name == "ours" and not recipe.data.refine:
-        raise RMError("recipe: method ours is IQL on the refined data; with data.refine=false use method.name=iql")
+    if recipe.method.name in ("ours", "ours-reuse") and not recipe.data.refine:
+        raise RMError(f"recipe: method {recipe.method.name} is IQL on the refined data; with data.refine=false "
+                      "use method.name=iql")
+    if recipe.data.reuse and not recipe.data.refine:
+        raise RMError("recipe: data.reuse brings back sub-trajectories the refinement abandons; it needs data.refine=true")
+    if recipe.method.name == "ours-reuse" and not recipe.data.reuse:
+        raise RMError("recipe: method ours-reuse is ours on data refined with the reuse stage; it needs data.reuse=true")
+    if recipe.method.name == "ours" and recipe.data.reuse:
+        raise RMError("recipe: method ours is the paper's refinement; for data.reuse=true use method=ours-reuse")
     if recipe.data.refine:
         if not recipe.data.events:
             raise RMError("recipe: data.events is required when data.refine is true")
