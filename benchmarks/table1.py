@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from generated_datasets import DATASETS as GENERATED, rmrl  # noqa: E402
+from generated_datasets import DATASETS as GENERATED, PAPER_T2, rmrl  # noqa: E402
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.errors import RMError  # noqa: E402
@@ -62,7 +62,7 @@ FEWER_SEEDS = {"cql": 3, "bcq": 3}
 #: hand-written analysis beside the generated results.md (kept by the report, linked from it)
 FINDINGS = "findings.md"
 LABELS = {"ours": "Ours", "ours-reuse": "ours-reuse", "iql": "IQL", "bc": "BC", "cql": "CQL", "bcq": "BCQ"}
-#: the paper's Table 1 (average D4RL return over 3 seeds after 0.5M steps) and Table 2 (transitions)
+#: the paper's Table 1 (average D4RL return over 3 seeds after 0.5M steps); its Table 2 is PAPER_T2
 PAPER = {
     "kitchen-partial": {"BC": 1.31, "BCQ": 0.46, "IQL": 1.60, "CQL": 0.92, "Ours": 3.24},
     "kitchen-mixed": {"BC": 1.61, "BCQ": 0.62, "IQL": 1.68, "CQL": 0.53, "Ours": 3.03},
@@ -70,11 +70,6 @@ PAPER = {
     "door-cloned": {"BC": -56.1, "BCQ": -57.5, "IQL": 20.1, "CQL": -56.5, "Ours": 415.9},
     "relocate-human": {"BC": 184.2, "BCQ": -25.1, "IQL": 288.6, "CQL": 78.1, "Ours": 633.3},
     "relocate-cloned": {"BC": -51.6, "BCQ": -56.0, "IQL": -52.4, "CQL": -30.1, "Ours": 492.4},
-}
-PAPER_T2 = {
-    "kitchen-partial": (136345, 98690, 50114, 22682), "kitchen-mixed": (136345, 83792, 49855, 44298),
-    "door-human-v0": (6704, 5001, 5001, 2261), "door-cloned": (995643, 372086, 372086, 167397),
-    "relocate-human": (9917, 7211, 7211, 7211), "relocate-cloned": (996242, 364207, 364207, 364207),
 }
 
 
