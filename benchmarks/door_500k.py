@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from table1 import LABELS, PAPER, collect, gather, pending  # noqa: E402
+from table1 import LABELS, PAPER, _cell, collect, gather, pending  # noqa: E402
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
@@ -64,11 +64,6 @@ def _curve_facts(run) -> dict:
     return {"best_score": float(score[best]), "best_step": int(steps[best]), "last5_mean": last,
             "peak5_mean": float(rolling[peak]), "peak5_end_step": int(steps[peak + LAST - 1]),
             "holds": bool(last >= HOLD * rolling[peak])}
-
-
-def _cell(values) -> str:
-    values = np.asarray(values, dtype=float)
-    return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
 
 
 def report(args) -> None:

@@ -146,3 +146,11 @@ def test_rmrl_main_reports_errors_without_traceback(cache, capsys):
         pytest.skip("rmrl generate is not wired into cli/main.py yet")
     assert main(["generate", "relocate-human", "--out-name", "bad name"]) == 2
     assert "rmrl generate: error: bad dataset name" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kwargs,match", [({"hesitate": 1.5}, "hesitate must be in"),
+                                          ({"hold_range": (50, 10)}, "hold_range must be two whole numbers"),
+                                          ({"hesitate_range": (-1, 5)}, "hesitate_range must be two whole numbers")])
+def test_bad_hesitation_options(cache, kwargs, match):
+    with pytest.raises(RMError, match=match):
+        generate_dataset(GENERATORS["relocate-human"], "rmrl/relocate-bad-v0", episodes=1, policy_kwargs=kwargs)

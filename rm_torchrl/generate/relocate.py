@@ -37,6 +37,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from rm_torchrl.errors import RMError
+
 ARM = slice(0, 6)      # ARTx, ARTy, ARTz, ARRx, ARRy, ARRz: the arm servos (affine, stiff)
 WRIST = slice(6, 8)    # WRJ1, WRJ0
 FINGERS = slice(8, 30)  # everything below the wrist: weak finger servos
@@ -77,6 +79,12 @@ class RelocateController:
         self.noise = float(noise)
         self.arm_jitter = float(arm_jitter)
         self.still = float(still)
+        if not 0.0 <= float(hesitate) <= 1.0:
+            raise RMError(f"relocate option hesitate must be in [0, 1], got {hesitate}")
+        for key, (lo, hi) in dict(hesitate_range=hesitate_range, hold_range=hold_range).items():
+            if not (float(lo).is_integer() and float(hi).is_integer() and 0 <= lo <= hi):
+                raise RMError(f"relocate option {key} must be two whole numbers of steps, 0 <= low <= high, "
+                              f"got {[lo, hi]}")
         self.hesitate, self.hesitate_range, self.hold_range = float(hesitate), hesitate_range, hold_range
         self.grasp_offset = float(grasp_offset)
         self.grasp_depth = float(grasp_depth)
