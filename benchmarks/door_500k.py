@@ -10,6 +10,11 @@ the results in earlier sessions are skipped. The report writes ``results.md`` (p
 final and best evaluation, mean of the last five, IQM [95% CI] over seeds, success and events reached,
 whether the score held, beside the paper's returns), ``curves.png``, ``summary.json`` and per-run
 ``runs/<run>/eval.csv``, ``recipe.yaml`` and ``machine_seconds``. Unfinished runs are listed, not reported.
+
+Candidate fixes for a decline (``ARMS``: ours with a few recipe overrides, run ``DATASET-<arm>``) are run with
+``run --arms NAME ...`` and reported apart, in ``arms.md`` and ``arms/runs/<run>/``, beside ours' default
+runs over the same steps, also while short of 500k: a probe may be stopped early to test only the first
+100k steps, where the actor's cosine rate is still above 97% of its start.
 """
 from __future__ import annotations
 
@@ -41,6 +46,13 @@ LAST = 5  # evaluations averaged at the end
 #: a run "holds" its score when the mean of its last five evaluations keeps at least this share of its best
 #: five in a row (a single best evaluation of 10 episodes is the luckiest of 50 and too noisy a peak)
 HOLD = 0.5
+#: candidate fixes for ours' decline at 500k (issue 22, item 2): arm -> (what it changes, recipe overrides)
+ARMS = {
+    "lra3e-5": ("actor lr 3e-5 (a tenth: its integral over 500k is the 50k budget's)", ["optim.lr_actor=3.0e-5"]),
+    "wdpi1e-2": ("actor weight decay 1e-2 (λ_π ten times λ_Q)", ["optim.weight_decay_pi=1.0e-2"]),
+}
+#: steps over which the arms table compares a probe with ours' default runs (the probes' first stretch)
+WINDOW = 100_000
 
 
 def grid(out: str, seeds, methods) -> list[tuple[None, list[str]]]:
@@ -50,8 +62,19 @@ def grid(out: str, seeds, methods) -> list[tuple[None, list[str]]]:
             for k in seeds for m in methods]
 
 
+def arm_grid(out: str, seeds, arms) -> list[tuple[None, list[str]]]:
+    """Ours with each arm's overrides, otherwise as ``grid`` runs it."""
+    return [(None, [f"dataset={DATASET}", "method=ours", f"name={DATASET}-{a}", f"seed={k}", f"out={out}",
+                    f"trainer.steps={STEPS}", f"eval.every={EVERY}", f"trainer.checkpoint_every={EVERY}",
+                    *ARMS[a][1]]) for k in seeds for a in arms]
+
+
 def run(args) -> None:
-    run_grid(pending(grid(args.out, args.seeds, args.methods), Path(args.results), args.override), args.jobs)
+    if args.arms:
+        cells = pending(arm_grid(args.out, args.seeds, args.arms), Path(args.results) / "arms", args.override)
+    else:
+        cells = pending(grid(args.out, args.seeds, args.methods), Path(args.results), args.override)
+    run_grid(cells, args.jobs)
 
 
 def _curve_facts(run) -> dict:
@@ -66,10 +89,57 @@ def _curve_facts(run) -> dict:
             "holds": bool(last >= HOLD * rolling[peak])}
 
 
+def _window(run, start: int, stop: int) -> float:
+    """Mean score of the run's evaluations at steps in [start, stop] (nan when it has none there)."""
+    steps, score = np.asarray(run.evals["step"]), np.asarray(run.evals["score"], dtype=float)
+    inside = (steps >= start) & (steps <= stop)
+    return float(score[inside].mean()) if inside.any() else float("nan")
+
+
+def report_arms(args, defaults) -> None:
+    """``arms.md``: each arm's runs (finished or not) beside ours' default runs, over the first ``WINDOW``
+    steps and over the whole run; ``arms/runs/<run>/`` their files, ``arms/curves.png`` their curves."""
+    results = Path(args.results) / "arms"
+    names = {f"{DATASET}-{a}": a for a in ARMS}
+    if not (Path(args.out).is_dir() or (results / "runs").is_dir()):
+        return
+    runs = [r for r in gather(Path(args.out), results, []) if r.name in names]
+    if not runs:
+        return
+    collect(runs, results)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    lines = [f"| arm | seed | steps reached | mean score, evaluations ≤ {WINDOW // 1000}k | after {WINDOW // 1000}k | "
+             f"best {LAST} in a row | mean of the last {LAST} | final score |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for label, r in [("ours (defaults)", r) for r in defaults if r.method == LABELS["ours"]] + \
+            [(ARMS[names[r.name]][0], r) for r in runs]:
+        facts = _curve_facts(r)
+        lines.append(f"| {label} | {r.seed} | {r.final_step:,} | {_window(r, 0, WINDOW):.1f} | "
+                     f"{_window(r, WINDOW + 1, STEPS):.1f} | {facts['peak5_mean']:.1f} | {facts['last5_mean']:.1f} | "
+                     f"{float(r.evals['score'][-1]):.1f} |")
+        ax.plot(r.evals["step"], r.evals["score"], lw=1.2, label=f"{label}, seed {r.seed}")
+    ax.set(xlabel="gradient steps", ylabel="D4RL score (10 episodes)", title=f"{DATASET}: ours and fix candidates")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(results / "curves.png", dpi=110)
+    text = ["# Fix candidates for ours' decline at 500k", "",
+            f"Ours on {DATASET} with the 500k recipe and one change each (`ARMS` in `benchmarks/door_500k.py`), "
+            f"evaluated over 10 episodes; a row short of {STEPS:,} steps is a probe stopped early. 'after "
+            f"{WINDOW // 1000}k' is nan for those.", "", *lines, "", "![curves](arms/curves.png)", ""]
+    tmp = Path(args.results) / "arms.md.tmp"
+    tmp.write_text("\n".join(text))
+    tmp.replace(Path(args.results) / "arms.md")
+    print("\n".join(lines))
+
+
 def report(args) -> None:
     results = Path(args.results)
     skipped: list[str] = []
-    runs = [r for r in gather(Path(args.out), results, skipped) if r.dataset == DATASET]
+    main_names = {f"{DATASET}-{m}" for m in METHODS}
+    runs = [r for r in gather(Path(args.out), results, skipped) if r.dataset == DATASET and r.name in main_names]
     unfinished = [r for r in runs if r.final_step < STEPS]
     skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {STEPS:,} steps)" for r in unfinished]
     runs = [r for r in runs if r not in unfinished]
@@ -125,6 +195,7 @@ def report(args) -> None:
     tmp.write_text("\n".join(text))
     tmp.replace(results / "results.md")
     print("\n".join(per_method))
+    report_arms(args, runs)
 
 
 def main() -> int:
@@ -134,6 +205,8 @@ def main() -> int:
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "door-human-v0-500k"))
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    p.add_argument("--arms", nargs="+", choices=list(ARMS), default=[],
+                   help="run these fix candidates (ours with ARMS' overrides) instead of the methods")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
                    help="extra recipe overrides for every run (e.g. trainer.threads=1)")

@@ -244,3 +244,24 @@ def test_door_500k_benchmark_report(tmp_path):
     assert [s["holds"] for s in sorted(summary, key=lambda s: s["seed"])] == [True, True, False]
     assert {s["last5_mean"] for s in summary} == {10.0, 8.0, 2.0}
     assert (results / "curves.png").read_bytes()[:8] == PNG_MAGIC
+    assert not (results / "arms.md").exists()  # no fix candidate has run
+
+
+def test_door_500k_report_of_fix_candidates(tmp_path):
+    """Arms (ours with ARMS' overrides) go to ``arms.md`` beside ours' default runs, also when stopped early, and
+    stay out of the main table."""
+    results = tmp_path / "results"
+    write_run(results / "runs", "door-human-v0-ours", 0, "ours", True, "door",
+              {**{s: 20.0 for s in range(10_000, 100_001, 10_000)}, **{s: 5.0 for s in range(110_000, 500_001, 10_000)}})
+    write_run(tmp_path / "out", "door-human-v0-lra3e-5", 0, "ours", True, "door",
+              {s: 15.0 if s <= 50_000 else 25.0 for s in range(5_000, 100_001, 5_000)})
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
+                           str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    arms = (results / "arms.md").read_text()
+    assert "| ours (defaults) | 0 | 500,000 | 20.0 | 5.0 | 20.0 | 5.0 | 5.0 |" in arms
+    assert "| 0 | 100,000 | 20.0 | nan | 25.0 | 25.0 | 25.0 |" in arms  # 10 evaluations at 15, 10 at 25
+    assert (results / "arms" / "runs" / "door-human-v0-lra3e-5-seed0" / "eval.csv").is_file()
+    assert (results / "arms" / "curves.png").read_bytes()[:8] == PNG_MAGIC
+    assert "| Ours | 1 |" in (results / "results.md").read_text()  # the arm is not one of ours' default runs
