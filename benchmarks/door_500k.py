@@ -33,9 +33,10 @@ from table1 import LABELS, PAPER, _cell, collect, gather, pending  # noqa: E402
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
-from rm_torchrl.report.runs import group_runs  # noqa: E402
+from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
 from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
 from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
+from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 
 DATASET = "door-human-v0"
 METHODS = ("ours", "iql", "bc")
@@ -51,6 +52,10 @@ ARMS = {
     "lra3e-5": ("actor lr 3e-5 (a tenth: its integral over 500k is the 50k budget's)", ["optim.lr_actor=3.0e-5"]),
     "wdpi1e-2": ("actor weight decay 1e-2 (λ_π ten times λ_Q)", ["optim.weight_decay_pi=1.0e-2"]),
 }
+#: committed runs of a default that has changed since (``differences``), kept for the arms table
+BEFORE = "before-fix"
+#: recipe sections that decide what a run learns (the rest: where it runs, how often it logs)
+TRAINING = ("method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau")
 #: steps over which the arms table compares a probe with ours' default runs (the probes' first stretch)
 WINDOW = 100_000
 
@@ -89,6 +94,23 @@ def _curve_facts(run) -> dict:
             "holds": bool(last >= HOLD * rolling[peak])}
 
 
+def _flat(tree, prefix: str = "") -> dict:
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    return {k: v for key, sub in tree.items() for k, v in _flat(sub, f"{prefix}.{key}" if prefix else key).items()}
+
+
+def differences(run) -> list[str]:
+    """``key: run's value -> today's`` for each training setting in which the run's recipe differs from what
+    ``rmrl train dataset=DATASET method=M trainer.steps=STEPS`` gives now (keys a recipe lacks are skipped:
+    runs from before an option existed)."""
+    now = _flat(load_recipe(None, [f"dataset={DATASET}", f"method={run.recipe['method']['name']}",
+                                   f"trainer.steps={STEPS}"]).to_dict())
+    then = _flat(run.recipe)
+    return [f"{k}: {then[k]} -> {now[k]}" for k in sorted(now) if k in then and then[k] != now[k]
+            and any(k == t or k.startswith(f"{t}.") for t in TRAINING)]
+
+
 def _window(run, start: int, stop: int) -> float:
     """Mean score of the run's evaluations at steps in [start, stop] (nan when it has none there)."""
     steps, score = np.asarray(run.evals["step"]), np.asarray(run.evals["score"], dtype=float)
@@ -101,6 +123,8 @@ def report_arms(args, defaults) -> None:
     steps and over the whole run; ``arms/runs/<run>/`` their files, ``arms/curves.png`` their curves."""
     results = Path(args.results) / "arms"
     names = {f"{DATASET}-{a}": a for a in ARMS}
+    before = Path(args.results) / BEFORE
+    stale = load_runs([before]) if before.is_dir() else []
     if not (Path(args.out).is_dir() or (results / "runs").is_dir()):
         return
     runs = [r for r in gather(Path(args.out), results, []) if r.name in names]
@@ -115,6 +139,7 @@ def report_arms(args, defaults) -> None:
     lines = [f"| arm | seed | steps reached | mean score, evaluations ≤ {WINDOW // 1000}k | after {WINDOW // 1000}k | "
              f"best {LAST} in a row | mean of the last {LAST} | final score |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for label, r in [("ours (defaults)", r) for r in defaults if r.method == LABELS["ours"]] + \
+            [(f"ours before the fix ({'; '.join(differences(r))})", r) for r in stale] + \
             [(ARMS[names[r.name]][0], r) for r in runs]:
         facts = _curve_facts(r)
         lines.append(f"| {label} | {r.seed} | {r.final_step:,} | {_window(r, 0, WINDOW):.1f} | "
@@ -143,6 +168,10 @@ def report(args) -> None:
     unfinished = [r for r in runs if r.final_step < STEPS]
     skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {STEPS:,} steps)" for r in unfinished]
     runs = [r for r in runs if r not in unfinished]
+    earlier = {r.path.name: differences(r) for r in runs}
+    skipped += [f"{name}: trained with an earlier default ({'; '.join(d)}); move it to {BEFORE}/" for name, d in
+                earlier.items() if d]
+    runs = [r for r in runs if not earlier[r.path.name]]
     summary = collect(runs, results)
     for row, r in zip(summary, runs):
         row.update(_curve_facts(r))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.report import group_runs, load_runs
@@ -255,6 +256,10 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
               {**{s: 20.0 for s in range(10_000, 100_001, 10_000)}, **{s: 5.0 for s in range(110_000, 500_001, 10_000)}})
     write_run(tmp_path / "out", "door-human-v0-lra3e-5", 0, "ours", True, "door",
               {s: 15.0 if s <= 50_000 else 25.0 for s in range(5_000, 100_001, 5_000)})
+    old = write_run(results / "runs", "door-human-v0-ours", 1, "ours", True, "door",
+                    {s: 3.0 for s in range(10_000, 500_001, 10_000)})
+    recipe = yaml.safe_load((old / "recipe.yaml").read_text())
+    (old / "recipe.yaml").write_text(yaml.safe_dump({**recipe, "optim": {"lr_actor": 3e-4}}))
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
                            str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
                           capture_output=True, text=True, timeout=300)
@@ -264,4 +269,14 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     assert "| 0 | 100,000 | 20.0 | nan | 25.0 | 25.0 | 25.0 |" in arms  # 10 evaluations at 15, 10 at 25
     assert (results / "arms" / "runs" / "door-human-v0-lra3e-5-seed0" / "eval.csv").is_file()
     assert (results / "arms" / "curves.png").read_bytes()[:8] == PNG_MAGIC
-    assert "| Ours | 1 |" in (results / "results.md").read_text()  # the arm is not one of ours' default runs
+    text = (results / "results.md").read_text()
+    assert "| Ours | 1 |" in text  # neither the arm nor the run of an earlier default is one of ours' default runs
+    assert "door-human-v0-ours-seed1: trained with an earlier default (optim.lr_actor: 0.0003 -> 3e-05)" in text
+    (results / "before-fix").mkdir()
+    old.rename(results / "before-fix" / old.name)
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
+                           str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | 1 | 500,000 | 3.0 | 3.0 |" in (
+        results / "arms.md").read_text()

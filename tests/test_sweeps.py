@@ -17,7 +17,7 @@ import yaml
 from rm_torchrl.cli.main import main
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
-from rm_torchrl.train.recipe import RECIPES
+from rm_torchrl.train.recipe import RECIPES, scaled_to_budget
 
 from test_train import make_recipe, write_d4rl
 
@@ -91,6 +91,25 @@ def test_ours_reuse_is_ours_with_the_reuse_stage(data):
     for recipe in (ours, reuse):
         del recipe["name"], recipe["data"]["reuse"], recipe["method"]["name"]
     assert reuse == ours
+
+
+@pytest.mark.parametrize("steps,rate", [(1000, 3e-4), (50_000, 3e-4), (100_000, 1.5e-4), (500_000, 3e-5)])
+def test_ours_actor_rate_keeps_the_50k_budgets_sum(steps, rate):
+    """Up to 50k updates ours' actor runs at 3e-4; longer runs get 3e-4 * 50k / steps (the door 500k study), and
+    its resolved recipe holds the number. The baselines keep 3e-4; the command line still wins."""
+    for method in ("ours", "ours-reuse"):
+        recipe = load_recipe(None, ["dataset=door-human-v0", f"method={method}", f"trainer.steps={steps}"])
+        assert recipe.optim.lr_actor == rate and recipe.to_dict()["optim"]["lr_actor"] == rate
+    assert load_recipe(None, ["method=iql", f"trainer.steps={steps}"]).optim.lr_actor == 3e-4
+    assert load_recipe(None, ["method=ours", f"trainer.steps={steps}", "optim.lr_actor=1e-4"]).optim.lr_actor == 1e-4
+
+
+def test_a_bad_budget_scaled_rate_is_a_one_line_error():
+    with pytest.raises(RMError, match="the reference steps and trainer.steps must be positive, got 50000 and 0") as err:
+        load_recipe(None, ["method=ours", "trainer.steps=0"])
+    assert "\n" not in str(err.value)
+    with pytest.raises(RMError, match="scaled_to_budget takes a rate and two step counts, got 'fast'"):
+        scaled_to_budget("fast", 50_000, 10)
 
 
 def test_a_tuned_file_reaches_its_own_method_only(tmp_path):

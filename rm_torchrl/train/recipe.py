@@ -48,6 +48,25 @@ TUNED_AS = {"ours-reuse": "ours"}
 OmegaConf.register_new_resolver("tuned_as", lambda method: TUNED_AS.get(method, method), replace=True)
 
 
+def scaled_to_budget(rate, reference_steps, steps) -> float:
+    """``rate`` for a run of up to ``reference_steps`` updates, ``rate * reference_steps / steps`` for a longer
+    one: the summed learning rate over the run stays the reference run's (``${scaled_to_budget:3e-4,50000,
+    ${trainer.steps}}``; benchmarks/results/door-human-v0-500k: ours' actor memorises its few thousand
+    refined transitions when 500k updates run at the 50k budget's rate)."""
+    try:
+        rate, reference_steps, steps = float(rate), int(reference_steps), int(steps)
+    except (TypeError, ValueError):
+        raise RMError(f"scaled_to_budget takes a rate and two step counts, got {rate!r}, {reference_steps!r}, "
+                      f"{steps!r}") from None
+    if reference_steps <= 0 or steps <= 0:
+        raise RMError(f"scaled_to_budget: the reference steps and trainer.steps must be positive, got "
+                      f"{reference_steps} and {steps}")
+    return float(f"{rate * min(1.0, reference_steps / steps):.12g}")  # 3e-05, not 2.9999999999999997e-05
+
+
+OmegaConf.register_new_resolver("scaled_to_budget", scaled_to_budget, replace=True)
+
+
 def hydra_overrides(overrides, path=None) -> list[str]:
     """The overrides for Hydra. A plain recipe file (a run's ``recipe.yaml``: no defaults list, so no
     schema during composition) gets value overrides as ``++key=value``, set whether or not the file
