@@ -224,6 +224,12 @@ def test_table1_benchmark_report(tmp_path):
     assert (results / "performance_profile.png").read_bytes()[:8] == PNG_MAGIC
 
 
+def door_500k_report(out: Path, results: Path) -> None:
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out", str(out),
+                           "--results", str(results), "--reps", "200"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+
+
 def test_door_500k_benchmark_report(tmp_path):
     """``benchmarks/door_500k.py report``: per-method table with IQM, best, last five, the hold check; unfinished runs out."""
     results = tmp_path / "results"
@@ -232,10 +238,7 @@ def test_door_500k_benchmark_report(tmp_path):
         write_run(results / "runs", "door-human-v0-ours", seed, "ours", True, "door",
                   {**curve, **{s: late for s in range(460_000, 500_001, 10_000)}})
     write_run(results / "runs", "door-human-v0-iql", 0, "iql", False, "door", {10_000: 1.0, 250_000: 2.0})
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
-                           str(tmp_path / "none"), "--results", str(results), "--reps", "200"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
+    door_500k_report(tmp_path / "none", results)
     text = (results / "results.md").read_text()
     assert "| Ours | 3 | 6.7 ± 4.2 | 6.7 [2.0, 10.0] | 10.0 ± 0.0 | 6.7 ± 4.2 |" in text
     assert "| 10.0 ± 0.0 | 2 of 3 |" in text  # best five in a row, and the runs that kept half of it
@@ -260,10 +263,7 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
                     {s: 3.0 for s in range(10_000, 500_001, 10_000)})
     recipe = yaml.safe_load((old / "recipe.yaml").read_text())
     (old / "recipe.yaml").write_text(yaml.safe_dump({**recipe, "optim": {"lr_actor": 3e-4}}))
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
-                           str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
+    door_500k_report(tmp_path / "out", results)
     arms = (results / "arms.md").read_text()
     assert "| ours (defaults) | 0 | 500,000 | 20.0 | 5.0 | 20.0 | 5.0 | 5.0 |" in arms
     assert "| 0 | 100,000 | 20.0 | nan | 25.0 | 25.0 | 25.0 |" in arms  # 10 evaluations at 15, 10 at 25
@@ -274,9 +274,6 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     assert "door-human-v0-ours-seed1: trained with an earlier default (optim.lr_actor: 0.0003 -> 3e-05)" in text
     (results / "before-fix").mkdir()
     old.rename(results / "before-fix" / old.name)
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out",
-                           str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
+    door_500k_report(tmp_path / "out", results)
     assert "| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | 1 | 500,000 | 3.0 | 3.0 |" in (
         results / "arms.md").read_text()
