@@ -37,6 +37,7 @@ from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
 from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
 from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
 from rm_torchrl.train.recipe import load_recipe  # noqa: E402
+from rm_torchrl.train.rundir import _flat  # noqa: E402  (the run directory's recipe comparison uses it too)
 
 DATASET = "door-human-v0"
 METHODS = ("ours", "iql", "bc")
@@ -92,12 +93,6 @@ def _curve_facts(run) -> dict:
     return {"best_score": float(score[best]), "best_step": int(steps[best]), "last5_mean": last,
             "peak5_mean": float(rolling[peak]), "peak5_end_step": int(steps[peak + LAST - 1]),
             "holds": bool(last >= HOLD * rolling[peak])}
-
-
-def _flat(tree, prefix: str = "") -> dict:
-    if not isinstance(tree, dict):
-        return {prefix: tree}
-    return {k: v for key, sub in tree.items() for k, v in _flat(sub, f"{prefix}.{key}" if prefix else key).items()}
 
 
 def differences(run) -> list[str]:
