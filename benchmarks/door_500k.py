@@ -14,16 +14,21 @@ whether the score held, beside the paper's returns), ``curves.png``, ``summary.j
 Candidate fixes for a decline (``ARMS``: ours with a few recipe overrides, run ``DATASET-<arm>``) are run with
 ``run --arms NAME ...`` and reported apart, in ``arms.md`` and ``arms/runs/<run>/``, beside ours' default
 runs over the same steps, also while short of 500k: a probe may be stopped early to test only the first
-100k steps, where the actor's cosine rate is still above 97% of its start.
+100k steps, where the actor's cosine rate is still above 97% of its start. An arm that became the default
+(its settings equal today's recipe) stands for ours' run of its seed after ``adopt --arms NAME``, which
+copies it to ``runs/`` with its evaluations at every 10,000 steps.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -53,10 +58,13 @@ ARMS = {
     "lra3e-5": ("actor lr 3e-5 (a tenth: its integral over 500k is the 50k budget's)", ["optim.lr_actor=3.0e-5"]),
     "wdpi1e-2": ("actor weight decay 1e-2 (λ_π ten times λ_Q)", ["optim.weight_decay_pi=1.0e-2"]),
 }
+#: what ``adopt`` adds to a run directory it makes from an arm's run
+ADOPTED = "adopted.json"
 #: committed runs of a default that has changed since (``differences``), kept for the arms table
 BEFORE = "before-fix"
 #: recipe sections that decide what a run learns (the rest: where it runs, how often it logs)
-TRAINING = ("method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau")
+TRAINING = ("data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints", "data.reuse", "rm",
+            "method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau")
 #: steps over which the arms table compares a probe with ours' default runs (the probes' first stretch)
 WINDOW = 100_000
 
@@ -95,15 +103,67 @@ def _curve_facts(run) -> dict:
             "holds": bool(last >= HOLD * rolling[peak])}
 
 
-def differences(run) -> list[str]:
+def _off(value) -> bool:
+    return value is False or value is None or value in ("", [])
+
+
+def differences(run, strict: bool = False) -> list[str]:
     """``key: run's value -> today's`` for each training setting in which the run's recipe differs from what
-    ``rmrl train dataset=DATASET method=M trainer.steps=STEPS`` gives now (keys a recipe lacks are skipped:
-    runs from before an option existed)."""
+    ``rmrl train dataset=DATASET method=M trainer.steps=STEPS`` gives now. Keys a recipe lacks are skipped
+    (runs from before an option existed) unless ``strict``: then they count, except where today's value is
+    off (``False``, empty): an option added since, whose default is what the run did."""
     now = _flat(load_recipe(None, [f"dataset={DATASET}", f"method={run.recipe['method']['name']}",
                                    f"trainer.steps={STEPS}"]).to_dict())
     then = _flat(run.recipe)
-    return [f"{k}: {then[k]} -> {now[k]}" for k in sorted(now) if k in then and then[k] != now[k]
+    return [f"{k}: {then.get(k, '(absent)')} -> {now[k]}" for k in sorted(now)
+            if (k in then or (strict and not _off(now[k]))) and then.get(k) != now[k]
             and any(k == t or k.startswith(f"{t}.") for t in TRAINING)]
+
+
+def adopt(args) -> None:
+    """Count each finished run of the ``--arms`` whose training settings have become today's default as ours'
+    default run of its seed, where ours has none yet: ``runs/<DATASET>-ours-seed<k>/`` gets its evaluations at
+    every ``EVERY`` steps, its recipe with a default run's ``name`` and ``eval.every``, its other files as they
+    are, and ``adopted.json`` saying what came from where. Evaluating more often leaves training as it is
+    (tests/test_train.py: the same weights, bit for bit), so the copy holds what the protocol's run would have."""
+    results = Path(args.results)
+    for arm in args.arms:
+        for seed in args.seeds:
+            source = results / "arms" / "runs" / f"{DATASET}-{arm}-seed{seed}"
+            dest = results / "runs" / f"{DATASET}-ours-seed{seed}"
+            if not source.is_dir() or dest.exists():
+                print(f"{source.name}: {'no committed run' if not source.is_dir() else dest.name + ' exists'}; "
+                      "nothing adopted", file=sys.stderr)
+                continue
+            run = load_runs([source])[0]
+            changed = differences(run, strict=True)
+            if run.final_step < STEPS or changed:
+                raise SystemExit(f"{source.name} cannot stand for ours' default: " + (
+                    f"it stops at {run.final_step:,} of {STEPS:,} steps" if run.final_step < STEPS else
+                    "its training settings are not today's default (" + "; ".join(changed) + ")"))
+            with (source / "eval.csv").open(newline="") as f:
+                header, *rows = list(csv.reader(f))
+            kept = [row for row in rows if int(row[0]) % EVERY == 0]
+            if [int(row[0]) for row in kept] != list(range(EVERY, STEPS + 1, EVERY)):
+                raise SystemExit(f"{source.name} was not evaluated at every multiple of {EVERY:,} steps")
+            recipe = dict(run.recipe, name=f"{DATASET}-ours", eval={**run.recipe["eval"], "every": EVERY})
+            tmp = dest.with_name(dest.name + ".tmp")
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir(parents=True)
+            with (tmp / "eval.csv").open("w", newline="") as f:
+                csv.writer(f, lineterminator="\n").writerows([header, *kept])
+            (tmp / "recipe.yaml").write_text(yaml.safe_dump(recipe, sort_keys=False))
+            for name in ("refine_report.json", "machine_seconds"):
+                if (source / name).is_file():
+                    shutil.copyfile(source / name, tmp / name)
+            (tmp / ADOPTED).write_text(json.dumps({
+                "from": f"arms/runs/{source.name}", "arm": arm, "arm_overrides": ARMS[arm][1],
+                "evaluated_every": run.recipe["eval"]["every"], "rows_kept": f"steps that are multiples of {EVERY}",
+                "recipe_changed": {"name": [run.recipe["name"], recipe["name"]],
+                                   "eval.every": [run.recipe["eval"]["every"], EVERY]},
+                "machine_seconds": "the arm run's, with its extra evaluations"}, indent=1) + "\n")
+            tmp.rename(dest)
+            print(f"{source.name} -> runs/{dest.name}: {len(kept)} of {len(rows)} evaluations kept", file=sys.stderr)
 
 
 def _window(run, start: int, stop: int) -> float:
@@ -111,6 +171,12 @@ def _window(run, start: int, stop: int) -> float:
     steps, score = np.asarray(run.evals["step"]), np.asarray(run.evals["score"], dtype=float)
     inside = (steps >= start) & (steps <= stop)
     return float(score[inside].mean()) if inside.any() else float("nan")
+
+
+def _default_label(run) -> str:
+    if (run.path / ADOPTED).is_file():
+        return f"ours (defaults: the {json.loads((run.path / ADOPTED).read_text())['arm']} run, adopted)"
+    return "ours (defaults)"
 
 
 def report_arms(args, defaults) -> None:
@@ -133,7 +199,7 @@ def report_arms(args, defaults) -> None:
     fig, ax = plt.subplots(figsize=(9, 4))
     lines = [f"| arm | seed | steps reached | mean score, evaluations ≤ {WINDOW // 1000}k | after {WINDOW // 1000}k | "
              f"best {LAST} in a row | mean of the last {LAST} | final score |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for label, r in [("ours (defaults)", r) for r in defaults if r.method == LABELS["ours"]] + \
+    for label, r in [(_default_label(r), r) for r in defaults if r.method == LABELS["ours"]] + \
             [(f"ours before the fix ({'; '.join(differences(r))})", r) for r in stale] + \
             [(ARMS[names[r.name]][0], r) for r in runs]:
         facts = _curve_facts(r)
@@ -224,19 +290,20 @@ def report(args) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("command", choices=("run", "report"))
+    p.add_argument("command", choices=("run", "report", "adopt"))
     p.add_argument("--out", default="runs", help="run directories (not committed)")
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "door-human-v0-500k"))
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     p.add_argument("--arms", nargs="+", choices=list(ARMS), default=[],
-                   help="run these fix candidates (ours with ARMS' overrides) instead of the methods")
+                   help="run these fix candidates (ours with ARMS' overrides) instead of the methods; with adopt: "
+                        "the arms whose runs become ours' default runs")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
                    help="extra recipe overrides for every run (e.g. trainer.threads=1)")
     p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the CIs (default {REPS})")
     args = p.parse_args()
-    {"run": run, "report": report}[args.command](args)
+    {"run": run, "report": report, "adopt": adopt}[args.command](args)
     return 0
 
 

@@ -277,3 +277,61 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     door_500k_report(tmp_path / "out", results)
     assert "| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | 1 | 500,000 | 3.0 | 3.0 |" in (
         results / "arms.md").read_text()
+
+
+def door_500k(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), *args], capture_output=True,
+                          text=True, timeout=300)
+
+
+def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, stop: int = 500_000) -> Path:
+    """A committed arm run whose recipe is what the trainer resolves for ours with ``overrides`` at 500k."""
+    from rm_torchrl.train.recipe import load_recipe
+
+    run = results / "arms" / "runs" / f"door-human-v0-{arm}-seed0"
+    run.mkdir(parents=True)
+    recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "trainer.steps=500000",
+                                f"name=door-human-v0-{arm}", f"eval.every={every}", *overrides]).to_dict()
+    (run / "recipe.yaml").write_text(yaml.safe_dump(recipe, sort_keys=False))
+    (run / "eval.csv").write_text("step,return_mean,return_std,score,success_rate,events_mean,episodes,reward\n" + "".join(
+        f"{s},{s / 1000},1.0,{s / 10_000},0.5,2.0,10,d4rl\n" for s in range(every, stop + 1, every)))
+    (run / "machine_seconds").write_text("7000.0\n")
+    return run
+
+
+def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
+    """``adopt``: the lr arm (today's default) becomes ours' seed-0 run, evaluations kept at every 10k; an arm that
+    is not the default, one stopped early, or a recipe lacking a setting is refused in one line; a seed ours has
+    is left alone."""
+    results = tmp_path / "results"
+    arm_run(results, "lra3e-5", ["optim.lr_actor=3.0e-5"])
+    done = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(results))
+    assert done.returncode == 0, done.stderr
+    assert "100 evaluations" in done.stderr and "50 of 100" in done.stderr
+    dest = results / "runs" / "door-human-v0-ours-seed0"
+    rows = (dest / "eval.csv").read_text().splitlines()
+    assert len(rows) == 51 and rows[1].startswith("10000,") and rows[-1].startswith("500000,500.0,1.0,50.0,")
+    recipe = yaml.safe_load((dest / "recipe.yaml").read_text())
+    assert recipe["name"] == "door-human-v0-ours" and recipe["eval"]["every"] == 10_000
+    assert recipe["optim"]["lr_actor"] == 3.0e-5
+    adopted = json.loads((dest / "adopted.json").read_text())
+    assert adopted["from"] == "arms/runs/door-human-v0-lra3e-5-seed0" and adopted["evaluated_every"] == 5_000
+    assert (dest / "machine_seconds").read_text() == "7000.0\n"
+    again = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(results))
+    assert again.returncode == 0 and "door-human-v0-ours-seed0 exists; nothing adopted" in again.stderr
+    door_500k_report(tmp_path / "none", results)
+    assert "| Ours | 1 | 50.0 | 50.0 [50.0, 50.0] | 50.0 | 48.0 |" in (results / "results.md").read_text()
+
+    for arm, overrides, stop, why in [
+            ("wdpi1e-2", ["optim.weight_decay_pi=1.0e-2"], 500_000, "optim.weight_decay_pi: 0.01 -> 0.001"),
+            ("lra3e-5", ["optim.lr_actor=3.0e-5"], 100_000, "it stops at 100,000 of 500,000 steps")]:
+        other = tmp_path / f"other-{arm}-{stop}"
+        arm_run(other, arm, overrides, stop=stop)
+        refused = door_500k("adopt", "--arms", arm, "--seeds", "0", "--results", str(other))
+        assert refused.returncode != 0 and why in refused.stderr and "Traceback" not in refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1 and not (other / "runs").exists()
+    legacy = tmp_path / "legacy"
+    write_run(legacy / "arms" / "runs", "door-human-v0-lra3e-5", 0, "ours", True, "door",
+              {s: 1.0 for s in range(10_000, 500_001, 10_000)})
+    refused = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(legacy))
+    assert refused.returncode != 0 and "optim.lr_actor: (absent) -> 3e-05" in refused.stderr

@@ -472,3 +472,21 @@ def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_r
     out = capfd.readouterr().err
     assert f"[tiny-seed0] rmrl train: SIGTERM: stopped after step {step} of 1000000; checkpoint written" in out
     assert "[tiny-seed2] finished 5 steps:" in out
+
+
+def test_evaluating_more_often_leaves_training_as_it_is(tmp_path, dataset):
+    """The evaluator draws nothing from training's random streams: a run evaluated every 5 steps reaches the
+    weights and evaluations of one evaluated every 10 at the steps both evaluate (benchmarks/door_500k.py's
+    ``adopt`` relies on it)."""
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 5, every: 5, episodes: 2}\n")
+    dense = train(load_recipe(recipe, ["name=dense", "trainer.steps=20", "eval.every=5"]), progress=False)
+    sparse = train(load_recipe(recipe, ["name=sparse", "trainer.steps=20", "eval.every=10"]), progress=False)
+    a = torch.load(dense / "checkpoint.pt", weights_only=False)
+    b = torch.load(sparse / "checkpoint.pt", weights_only=False)
+    for key, value in a["loss"].items():
+        torch.testing.assert_close(value, b["loss"][key], rtol=0, atol=0, msg=key)
+    assert torch.equal(a["torch_rng"], b["torch_rng"]) and torch.equal(a["generator"], b["generator"])
+    rows = {name: {r["step"]: r for r in csv.DictReader((run / "eval.csv").open())} for name, run in
+            (("dense", dense), ("sparse", sparse))}
+    assert list(rows["dense"]) == ["5", "10", "15", "20"] and list(rows["sparse"]) == ["10", "20"]
+    assert all(rows["dense"][s] == rows["sparse"][s] for s in ("10", "20"))
