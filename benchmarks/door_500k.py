@@ -42,7 +42,7 @@ from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
 from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
 from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
 from rm_torchrl.train.recipe import load_recipe  # noqa: E402
-from rm_torchrl.train.rundir import _flat  # noqa: E402  (the run directory's recipe comparison uses it too)
+from rm_torchrl.train.rundir import recipe_changes  # noqa: E402
 
 DATASET = "door-human-v0"
 METHODS = ("ours", "iql", "bc")
@@ -112,12 +112,9 @@ def differences(run, strict: bool = False) -> list[str]:
     ``rmrl train dataset=DATASET method=M trainer.steps=STEPS`` gives now. Keys a recipe lacks are skipped
     (runs from before an option existed) unless ``strict``: then they count, except where today's value is
     off (``False``, empty): an option added since, whose default is what the run did."""
-    now = _flat(load_recipe(None, [f"dataset={DATASET}", f"method={run.recipe['method']['name']}",
-                                   f"trainer.steps={STEPS}"]).to_dict())
-    then = _flat(run.recipe)
-    return [f"{k}: {then.get(k, '(absent)')} -> {now[k]}" for k in sorted(now)
-            if (k in then or (strict and not _off(now[k]))) and then.get(k) != now[k]
-            and any(k == t or k.startswith(f"{t}.") for t in TRAINING)]
+    now = load_recipe(None, [f"dataset={DATASET}", f"method={run.recipe['method']['name']}",
+                             f"trainer.steps={STEPS}"]).to_dict()
+    return recipe_changes(run.recipe, now, TRAINING, added=(lambda v: not _off(v)) if strict else (lambda v: False))
 
 
 def adopt(args) -> None:

@@ -131,11 +131,17 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
-def recipe_changes(old: dict, new: dict) -> list[str]:
-    """``key: old -> new`` for every :data:`FROZEN` entry that differs between two recipe dicts."""
+def recipe_changes(old: dict, new: dict, keys=FROZEN, added=lambda value: True) -> list[str]:
+    """``key: old -> new`` for every entry under ``keys`` (default :data:`FROZEN`) that differs between two
+    recipe dicts. A key ``old`` lacks (an option added since) counts where ``added(its value in new)``."""
     a, b = _flat(old), _flat(new)
-    frozen = [k for k in sorted(set(a) | set(b)) if any(k == f or k.startswith(f + ".") for f in FROZEN)]
-    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in frozen if a.get(k) != b.get(k)]
+    wanted = [k for k in sorted(set(a) | set(b)) if any(k == f or k.startswith(f + ".") for f in keys)
+              and (k in a or added(b[k]))]
+    return [f"{k}: {_shown(a, k)} -> {_shown(b, k)}" for k in wanted if a.get(k) != b.get(k)]
+
+
+def _shown(flat: dict, key: str) -> str:
+    return repr(flat[key]) if key in flat else "(absent)"
 
 
 def _foreign(run_dir: Path) -> list[str]:
