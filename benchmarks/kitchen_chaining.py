@@ -13,6 +13,11 @@ Three views of one run's last checkpoint (a FrankaKitchen-v1 run, refined or not
   observation, so within the env's observation noise), the RM into that piece's RM state, and the
   policy runs for the horizon. The rate at which the group's event fires separates "cannot do
   skill k" from "never reaches the states where skill k starts".
+* ``joins``: where the policy hands over from one skill to the next. At the step its own episode fires
+  the k-th event of the order, the robot's joint positions against the first states of group k+1's
+  kept sub-trajectories (nearest neighbour, radians), beside the same distance from each of those
+  starts to the others. A handover far outside the group's starts means the skills exist but do not
+  join: the next RM state's data never start where the policy's own previous skill leaves the arm.
 * ``offline``: ``iql_diagnostics.diagnose``: per RM state the transitions, values, advantages,
   AWR weights and how much the action depends on the RM encoding.
 """
@@ -46,6 +51,8 @@ from rm_torchrl.train.data import ENCODING_KEY  # noqa: E402
 #: FrankaKitchen-v1's flat observation: robot qpos (9), robot qvel (9), object qpos (21), object qvel (20)
 QPOS = np.r_[0:9, 18:39]
 QVEL = np.r_[9:18, 39:59]
+#: the robot's joints (arm and fingers) within QPOS
+ROBOT = np.r_[0:9]
 
 
 def task_distance(qpos: np.ndarray, task: str) -> float:
@@ -117,7 +124,33 @@ def own_episodes(probe: KitchenProbe, episodes: int, horizon: int, seed: int) ->
         fired = probe.fired(states)
         since = fired[-1][1] if fired else 0
         out.append({"fired": fired, "steps": len(qposes) - 1, "last_state_steps": len(qposes) - 1 - since,
-                    "progress_in_last_state": progress(qposes[since], qposes[-1], probe.tasks)})
+                    "progress_in_last_state": progress(qposes[since], qposes[-1], probe.tasks),
+                    "handovers": [qposes[t] for _, t in fired]})
+    return out
+
+
+def nearest(points: np.ndarray, to: np.ndarray, leave_one_out: bool = False) -> np.ndarray:
+    """Per row of ``points``, the Euclidean distance to the nearest row of ``to`` (itself excluded if asked)."""
+    d = np.linalg.norm(points[:, None, :] - to[None, :, :], axis=-1)
+    if leave_one_out:
+        np.fill_diagonal(d, np.inf)
+    return d.min(axis=1)
+
+
+def joins(own: list[dict], order: list[str], group_starts: dict) -> list[dict]:
+    """Per handover k -> k+1 of the order: the policy's joints when event k fires against group k+1's starts."""
+    out = []
+    for depth in range(1, len(order)):
+        starts = group_starts[depth][:, ROBOT]
+        ours = np.array([ep["handovers"][depth - 1][ROBOT] for ep in own
+                         if [name for name, _ in ep["fired"][:depth]] == order[:depth]]).reshape(-1, len(ROBOT))
+        within = nearest(starts, starts, leave_one_out=True) if len(starts) > 1 else np.array([])
+        policy = nearest(ours, starts) if len(ours) and len(starts) else np.array([])
+        out.append({"after": order[depth - 1], "next": order[depth], "group_starts": len(starts),
+                    "policy_handovers": len(ours),
+                    "data_median_nn": round(float(np.median(within)), 3) if len(within) else None,
+                    "data_p90_nn": round(float(np.quantile(within, 0.9)), 3) if len(within) else None,
+                    "policy_median_nn": round(float(np.median(policy)), 3) if len(policy) else None})
     return out
 
 
@@ -138,7 +171,8 @@ def skill_starts(recipe, n: int, seed: int) -> dict:
         lengths = length[piece[rows]].numpy()
         pick = rng.choice(len(rows), size=min(n, len(rows)), replace=False)
         groups[depth] = {"pieces": len(rows), "median_length": float(np.median(lengths)),
-                         "starts": [(obs[rows[i]].double().numpy(), data["rm_state"][rows[i]]) for i in pick]}
+                         "starts": [(obs[rows[i]].double().numpy(), data["rm_state"][rows[i]]) for i in pick],
+                         "all_qpos": obs[rows].double().numpy()[:, QPOS]}
     return {"order": report.to_dict()["order"], "groups": groups}
 
 
@@ -179,6 +213,10 @@ def main(argv=None) -> int:
     starts = skill_starts(loaded.recipe, args.starts, args.seed)
     result["order"] = starts["order"]
     result["from_data"] = from_data(probe, starts, horizon)
+    result["joins"] = joins(result["own"], starts["order"],
+                            {d: g["all_qpos"] for d, g in starts["groups"].items()})
+    for episode in result["own"]:
+        episode.pop("handovers")
     if loaded.recipe.data.refine:
         result["offline"] = diagnose(args.run_dir)["rm_states"]
     probe.env.close()
