@@ -1,15 +1,18 @@
 """What an IQL run's critics and actor do on its own training data: advantages, AWR weights, RM states.
 
     python benchmarks/iql_diagnostics.py RUN_DIR [key=value ...]   # overrides for the run's recipe.yaml
+    python benchmarks/iql_diagnostics.py RUN_DIR --checkpoints A.pt B.pt ...  # earlier checkpoints of the run
 
 Prints JSON: per RM state (named by its events in order), the number of transitions, the spread of
 the advantage A = min Q(s, a) - V(s), the effective sample size of the AWR weights exp(beta A)
 (1 = every transition weighted alike, as in behaviour cloning), the actor's negative
-log-likelihood of the dataset actions, and how far its deterministic action moves when only the RM
+log-likelihood of the dataset actions, how far its deterministic action is from them (mean squared
+error per dimension) and how often it sits at the action bound (|a| > 0.99), and how far its deterministic action moves when only the RM
 encoding is swapped for another state's (0: the policy ignores the RM state).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -33,11 +36,12 @@ def quantiles(x: torch.Tensor) -> dict:
             "std": round(x.double().std().item(), 3)}
 
 
-def diagnose(run_dir: Path, overrides: list[str] = ()) -> dict:
-    """The JSON object described above, for the run's last checkpoint."""
+def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None = None, data=None) -> dict:
+    """The JSON object described above, for the run's last checkpoint or ``checkpoint`` (one the run wrote
+    earlier); ``data``: the run's prepared data, to reuse over several checkpoints."""
     recipe = load_recipe(run_dir / "recipe.yaml", list(overrides))
-    state = load_checkpoint(run_dir / "checkpoint.pt")
-    data = prepare_data(recipe)
+    state = load_checkpoint(checkpoint or run_dir / "checkpoint.pt")
+    data = prepare_data(recipe) if data is None else data
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
                           data.action_dim)
     method.loss.load_state_dict(state["loss"])
@@ -77,6 +81,8 @@ def diagnose(run_dir: Path, overrides: list[str] = ()) -> dict:
                 "value": quantiles(v[rows]), "advantage": quantiles(adv[rows]),
                 "weight_ess": round((w.sum() ** 2 / (w ** 2).sum() / len(w)).item(), 3),
                 "actor_nll": round(nll[rows].mean().item(), 2),
+                "action_mse": round((action[rows] - td.get("action")[rows]).pow(2).mean().item(), 4),
+                "action_at_bound": round((action[rows].abs() > 0.99).float().mean().item(), 3),
                 "action_shift_when_rm_state_swapped": round(sum(shifted) / max(len(shifted), 1), 3),
             })
     out["all"] = {"advantage": quantiles(adv), "weight_ess": round((weight.sum() ** 2 / (weight ** 2).sum() / len(weight)).item(), 3)}
@@ -84,7 +90,18 @@ def diagnose(run_dir: Path, overrides: list[str] = ()) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    print(json.dumps(diagnose(Path(argv[0]), argv[1:]), indent=1))
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", type=Path)
+    parser.add_argument("overrides", nargs="*", help="key=value for the run's recipe.yaml")
+    parser.add_argument("--checkpoints", nargs="+", type=Path, default=None,
+                        help="checkpoints the run wrote earlier (kept copies): one JSON object each, in a list")
+    args = parser.parse_args(argv)
+    if args.checkpoints is None:
+        print(json.dumps(diagnose(args.run_dir, args.overrides), indent=1))
+        return 0
+    data = prepare_data(load_recipe(args.run_dir / "recipe.yaml", args.overrides))
+    out = [diagnose(args.run_dir, args.overrides, path, data) for path in args.checkpoints]
+    print(json.dumps(sorted(out, key=lambda d: d["step"]), indent=1))
     return 0
 
 
