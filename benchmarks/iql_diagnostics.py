@@ -8,7 +8,10 @@ the advantage A = min Q(s, a) - V(s), the effective sample size of the AWR weigh
 (1 = every transition weighted alike, as in behaviour cloning), the actor's negative
 log-likelihood of the dataset actions, how far its deterministic action is from them (mean squared
 error per dimension) and how often it sits at the action bound (|a| > 0.99), and how far its deterministic action moves when only the RM
-encoding is swapped for another state's (0: the policy ignores the RM state).
+encoding is swapped for another state's (0: the policy ignores the RM state). ``by_phase`` splits each
+RM state's transitions by where they sit in their sub-trajectory (fifths, start to event): the AWR
+weight there relative to the state's mean, the actor's error, and with ``--against CHECKPOINT`` (another
+run's, same data) how far the two actors' deterministic actions are apart.
 """
 from __future__ import annotations
 
@@ -36,15 +39,46 @@ def quantiles(x: torch.Tensor) -> dict:
             "std": round(x.double().std().item(), 3)}
 
 
-def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None = None, data=None) -> dict:
-    """The JSON object described above, for the run's last checkpoint or ``checkpoint`` (one the run wrote
-    earlier); ``data``: the run's prepared data, to reuse over several checkpoints."""
-    recipe = load_recipe(run_dir / "recipe.yaml", list(overrides))
-    state = load_checkpoint(checkpoint or run_dir / "checkpoint.pt")
-    data = prepare_data(recipe) if data is None else data
+PHASES = 5
+
+
+def phase_of(td) -> torch.Tensor:
+    """Each transition's fifth (0-4) of its sub-trajectory: sub-trajectories are the runs of transitions
+    whose next observation is the following transition's observation, cut at ``done``."""
+    n = len(td)
+    cut = torch.ones(n, dtype=torch.bool)
+    if n > 1:
+        chained = (td.get(("next", "observation"))[:-1] - td.get("observation")[1:]).abs().amax(-1) <= 1e-5
+        cut[:-1] = td.get(("next", "done")).reshape(n)[:-1] | ~chained
+    segment = torch.cat([torch.zeros(1, dtype=torch.long), cut[:-1].long().cumsum(0)])
+    starts = torch.cat([torch.zeros(1, dtype=torch.long), cut[:-1].nonzero().flatten() + 1])
+    pos = torch.arange(n) - starts[segment]
+    length = torch.bincount(segment)[segment]
+    return (pos * PHASES // length).clamp_max(PHASES - 1)
+
+
+def trained_method(recipe, data, checkpoint: Path):
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
                           data.action_dim)
+    state = load_checkpoint(checkpoint)
     method.loss.load_state_dict(state["loss"])
+    method.policy.eval()
+    return method, state
+
+
+def deterministic_action(method, td, obs_keys) -> torch.Tensor:
+    with torch.no_grad(), set_interaction_type(InteractionType.DETERMINISTIC):
+        return method.policy(td.select(*obs_keys).clone())["action"]
+
+
+def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None = None, data=None,
+             against: Path | None = None) -> dict:
+    """The JSON object described above, for the run's last checkpoint or ``checkpoint`` (one the run wrote
+    earlier); ``data``: the run's prepared data, to reuse over several checkpoints; ``against``: another
+    run's checkpoint whose actor is compared phase by phase."""
+    recipe = load_recipe(run_dir / "recipe.yaml", list(overrides))
+    data = prepare_data(recipe) if data is None else data
+    method, state = trained_method(recipe, data, checkpoint or run_dir / "checkpoint.pt")
     loss, beta = method.loss, recipe.method.iql.temperature
     td = data.transitions
     with torch.no_grad():
@@ -52,10 +86,11 @@ def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None =
         v = loss._v(td, loss.value_network_params)
         adv = q - v
         weight = torch.exp(beta * adv).clamp_max(100)
-        method.policy.eval()
         nll = -loss._log_prob(td)
-        with set_interaction_type(InteractionType.DETERMINISTIC):
-            action = method.policy(td.select(*data.obs_keys).clone())["action"]
+    action = deterministic_action(method, td, data.obs_keys)
+    against_action = None if against is None else deterministic_action(trained_method(recipe, data, against)[0], td, data.obs_keys)
+    phase = phase_of(td)
+    error = (action - td.get("action")).pow(2).mean(-1)
     out = {"run": str(run_dir), "step": state["step"], "temperature": beta, "transitions": len(td), "rm_states": []}
     if ENCODING_KEY in td.keys():
         enc = td.get(ENCODING_KEY)
@@ -84,8 +119,24 @@ def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None =
                 "action_mse": round((action[rows] - td.get("action")[rows]).pow(2).mean().item(), 4),
                 "action_at_bound": round((action[rows].abs() > 0.99).float().mean().item(), 3),
                 "action_shift_when_rm_state_swapped": round(sum(shifted) / max(len(shifted), 1), 3),
+                "by_phase": by_phase(rows, phase, weight, error, None if against_action is None else (action - against_action).pow(2).mean(-1)),
             })
     out["all"] = {"advantage": quantiles(adv), "weight_ess": round((weight.sum() ** 2 / (weight ** 2).sum() / len(weight)).item(), 3)}
+    return out
+
+
+def by_phase(rows, phase, weight, error, gap) -> list[dict]:
+    out = []
+    for k in range(PHASES):
+        sel = rows & (phase == k)
+        if not sel.any():
+            continue
+        entry = {"phase": f"{k}/{PHASES}", "transitions": int(sel.sum()),
+                 "relative_weight": round((weight[sel].mean() / weight[rows].mean()).item(), 3),
+                 "action_mse": round(error[sel].mean().item(), 4)}
+        if gap is not None:
+            entry["action_gap_to_other"] = round(gap[sel].mean().item(), 4)
+        out.append(entry)
     return out
 
 
@@ -95,12 +146,16 @@ def main(argv: list[str]) -> int:
     parser.add_argument("overrides", nargs="*", help="key=value for the run's recipe.yaml")
     parser.add_argument("--checkpoints", nargs="+", type=Path, default=None,
                         help="checkpoints the run wrote earlier (kept copies): one JSON object each, in a list")
+    parser.add_argument("--against", type=Path, default=None,
+                        help="another run's checkpoint on the same data: per phase, how far its actor is from this one")
     args = parser.parse_args(argv)
+    if args.against is not None and not args.against.is_file():
+        parser.error(f"--against {args.against}: no such checkpoint")
     if args.checkpoints is None:
-        print(json.dumps(diagnose(args.run_dir, args.overrides), indent=1))
+        print(json.dumps(diagnose(args.run_dir, args.overrides, against=args.against), indent=1))
         return 0
     data = prepare_data(load_recipe(args.run_dir / "recipe.yaml", args.overrides))
-    out = [diagnose(args.run_dir, args.overrides, path, data) for path in args.checkpoints]
+    out = [diagnose(args.run_dir, args.overrides, path, data, args.against) for path in args.checkpoints]
     print(json.dumps(sorted(out, key=lambda d: d["step"]), indent=1))
     return 0
 
