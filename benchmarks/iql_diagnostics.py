@@ -58,6 +58,7 @@ def phase_of(td) -> torch.Tensor:
 
 
 def trained_method(recipe, data, checkpoint: Path):
+    """The run's method with the weights of ``checkpoint``, in eval mode, and the checkpoint itself."""
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
                           data.action_dim)
     state = load_checkpoint(checkpoint)

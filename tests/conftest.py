@@ -20,6 +20,17 @@ def generate_cli(*argv: str) -> int:
     return run(args)
 
 
+def load_benchmark(name: str):
+    """The module of ``benchmarks/NAME.py`` (the scripts are not a package)."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def leftovers(cache: Path) -> list[str]:
     """Everything in a Minari cache, hidden temporary directories included."""
     return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []

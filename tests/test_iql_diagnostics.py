@@ -1,22 +1,16 @@
 """The sub-trajectory phases of ``benchmarks/iql_diagnostics.py``, against a per-transition loop."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 from tensordict import TensorDict
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "iql_diagnostics.py"
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def diagnostics():
-    spec = importlib.util.spec_from_file_location("iql_diagnostics", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("iql_diagnostics")
 
 
 def chained(lengths, done_inside=()):

@@ -1,21 +1,15 @@
 """The handover measure of ``benchmarks/kitchen_chaining.py`` on hand-made joint positions."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "kitchen_chaining.py"
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def chaining():
-    spec = importlib.util.spec_from_file_location("kitchen_chaining", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("kitchen_chaining")
 
 
 def test_nearest_leaves_each_point_out_when_asked(chaining):
