@@ -15,7 +15,8 @@ from typing import List, Protocol
 #: on the refined data with the RM state as policy input; ``ours-reuse`` the same on data refined with the
 #: reuse stage (beyond the paper); the others are the paper's baselines.
 METHOD_SECTIONS = {"ours": "iql", "ours-reuse": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
-ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
+ACTORS = ("tanh_normal", "gaussian")
+HPARAMS = ("published", "ours")  # method.hparams: the authors' published settings, or ours' (recipes/method/ours.yaml)  # network.actor: see rm_torchrl.methods.networks.make_actor
 
 
 @dataclass
@@ -47,6 +48,7 @@ class BCQConfig:
 @dataclass
 class MethodConfig:
     name: str = "iql"  # ours | ours-reuse | iql | bc | cql | bcq
+    hparams: str = "published"  # whose settings the values are: published (the algorithm's authors') | ours
     iql: IQLConfig = field(default_factory=IQLConfig)
     cql: CQLConfig = field(default_factory=CQLConfig)
     bcq: BCQConfig = field(default_factory=BCQConfig)

@@ -18,7 +18,7 @@ from typing import Any, Dict, List
 from omegaconf import OmegaConf
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.methods.config import ACTORS, METHOD_SECTIONS, MethodConfig, NetworkConfig, OptimConfig
+from rm_torchrl.methods.config import ACTORS, HPARAMS, METHOD_SECTIONS, MethodConfig, NetworkConfig, OptimConfig
 
 DEVICES = "auto | cpu | cuda | cuda:N"
 
@@ -27,6 +27,7 @@ CHOICES = {
     "data.episode_ends": ("auto", "terminals", "timeouts", "both"),
     "rm.encoding": ("one_hot", "slots"),
     "method.name": tuple(METHOD_SECTIONS),
+    "method.hparams": HPARAMS,
     "optim.decay": ("l2", "decoupled"),
     "optim.actor_schedule": ("constant", "cosine"),
     "network.actor": ACTORS,
@@ -135,5 +136,5 @@ class Recipe:
         """The resolved recipe, with only the method sub-section this run reads."""
         data = OmegaConf.to_container(OmegaConf.structured(self), resolve=True)
         own = METHOD_SECTIONS.get(self.method.name)
-        data["method"] = {k: v for k, v in data["method"].items() if k == "name" or k == own}
+        data["method"] = {k: v for k, v in data["method"].items() if k in ("name", "hparams") or k == own}
         return data
