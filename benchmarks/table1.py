@@ -8,10 +8,13 @@
 
 Datasets: the real D4RL ``door-human-v0.hdf5`` and the five generated at full size (``rmrl generate``,
 as ``benchmarks/generated_datasets.py`` sizes them), in the Minari cache (``MINARI_DATASETS_PATH``).
-Methods: ours, IQL and BC, 5 seeds, 50k gradient steps, and ours-reuse (ours with the reuse stage,
+Methods: ours, IQL and BC (CORL's), 5 seeds, 50k gradient steps, and ours-reuse (ours with the reuse stage,
 beyond the paper) on the two kitchen datasets; CQL and BCQ (17x and 8x an IQL update on this CPU) at
 10k steps x 3 seeds on door-human-v0 only, labelled with their budget. Every run
-evaluates every 2000 steps over 10 episodes with D4RL's reward. Run directories are
+evaluates every 2000 steps over 10 episodes with D4RL's reward. Seeds: per dataset the first five that no
+choice of settings used (``benchmarks/results/choices.json``, ``benchmarks/PROTOCOL.md``); the report leaves
+out any run whose (dataset, seed) a choice used, and BC runs from before CORL's BC, each with a line saying why.
+Generated stand-ins are marked "(generated)" in every table and plot, and aggregated apart from the D4RL data. Run directories are
 ``OUT/<dataset>-<method>-seed<k>/`` (``--out``, default ``runs``). The report adds rliable's statistics
 (``rm_torchrl.report.stats``): IQMs with bootstrap CIs, the aggregate over datasets at ours' 50k steps
 (CQL and BCQ, at 10k, are left out of it), P(ours > baseline), ``aggregates.json`` and
@@ -35,11 +38,12 @@ from generated_datasets import DATASETS as GENERATED, PAPER_T2, rmrl  # noqa: E4
 
 from rm_torchrl.cli.train import run_grid  # noqa: E402
 from rm_torchrl.errors import RMError  # noqa: E402
+from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices  # noqa: E402
 from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile  # noqa: E402
 from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
-from rm_torchrl.report.stats import REPS, aggregate, write_json  # noqa: E402
+from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
 from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note  # noqa: E402
-from rm_torchrl.run_format import REUSED  # noqa: E402
+from rm_torchrl.run_format import REUSED, run_identity  # noqa: E402
 
 #: Table 1 row -> the dataset option in recipes/dataset/ (rmrl-*: the generated stand-ins, rmrl/<row>-v0)
 DATASETS = {
@@ -51,12 +55,17 @@ DATASETS = {
     "relocate-cloned": "rmrl-relocate-cloned",
 }
 KITCHEN = ["kitchen-partial", "kitchen-mixed"]
+#: a dataset option's data.name -> its Table 1 row
+ROWS = {option: row for row, option in DATASETS.items()}
+GENERATED_MARK = " (generated)"
+#: the tuning record: runs whose (dataset, seed) a choice used are not reported
+CHOICES = ROOT / "benchmarks" / "results" / "choices.json"
 #: method -> (gradient steps, datasets it runs on); ours-reuse only where its stage brings data back
 #: (relocate and door have a single event order, so nothing is abandoned there)
 BUDGETS = {"ours": (50_000, list(DATASETS)), "ours-reuse": (50_000, KITCHEN), "iql": (50_000, list(DATASETS)),
            "bc": (50_000, list(DATASETS)),
            "cql": (10_000, ["door-human-v0"]), "bcq": (10_000, ["door-human-v0"])}
-SEEDS = (0, 1, 2, 3, 4)
+SEEDS = 5  # per dataset: the first five seeds no choice used
 #: methods run with fewer seeds (CQL and BCQ: 17x and 8x an IQL update on this CPU)
 FEWER_SEEDS = {"cql": 3, "bcq": 3}
 #: hand-written analysis beside the generated results.md (kept by the report, linked from it)
@@ -73,17 +82,36 @@ PAPER = {
 }
 
 
-def grid(out: str, seeds, datasets=None, methods=None) -> list[tuple[None, list[str]]]:
+def shown(dataset: str) -> str:
+    """A Table 1 row as tables show it: generated stand-ins marked."""
+    return dataset + GENERATED_MARK if DATASETS.get(dataset, "").startswith("rmrl-") else dataset
+
+
+def row(dataset: str) -> str:
+    """The Table 1 row of a shown dataset label."""
+    return dataset.removesuffix(GENERATED_MARK)
+
+
+def seeds_of(option: str, seeds=None) -> list[int]:
+    """``seeds`` if given, else the first :data:`SEEDS` seeds no choice used on the dataset ``option``."""
+    return list(seeds) if seeds else first_free_seeds(option, read_choices(CHOICES), SEEDS)
+
+
+def grid(out: str, seeds=None, datasets=None, methods=None) -> list[tuple[None, list[str]]]:
     """Seed-major, then dataset, then method: a partial sweep covers every cell with its first seeds.
 
     Each run is ``rmrl train dataset=OPTION method=M`` named after its Table 1 row.
     """
     runs = []
-    for seed in seeds:
+    per_dataset = {dataset: seeds_of(option, seeds) for dataset, option in DATASETS.items()}
+    for rank in range(max(len(s) for s in per_dataset.values())):
         for dataset, option in DATASETS.items():
+            if rank >= len(per_dataset[dataset]):
+                continue
+            seed = per_dataset[dataset][rank]
             for method, (steps, where) in BUDGETS.items():
                 if (dataset in where and dataset in (datasets or DATASETS) and method in (methods or BUDGETS)
-                        and seed < FEWER_SEEDS.get(method, len(SEEDS))):
+                        and rank < FEWER_SEEDS.get(method, SEEDS)):
                     runs.append((None, [f"dataset={option}", f"method={method}", f"name={dataset}-{method}",
                                         f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
                                         "trainer.checkpoint_every=5000"]))
@@ -144,9 +172,10 @@ def missing_cells(runs) -> list[str]:
     out = []
     for dataset in DATASETS:
         for method, (steps, where) in BUDGETS.items():
-            have, want = len(done.get((dataset, LABELS[method]), ())), FEWER_SEEDS.get(method, len(SEEDS))
+            have, want = len(done.get((shown(dataset), LABELS[method]), ())), FEWER_SEEDS.get(method, SEEDS)
             if dataset in where and have < want:
-                out.append(f"{dataset} / {LABELS[method]} ({steps // 1000}k steps): {have} of {want} seeds finished")
+                out.append(f"{shown(dataset)} / {LABELS[method]} ({steps // 1000}k steps): {have} of {want} seeds "
+                           "finished")
     return out
 
 
@@ -165,6 +194,7 @@ def machine_time(summary) -> list[str]:
     lines = ["| dataset | " + " | ".join(methods) + " | all |", "|---|" + "---|" * (len(methods) + 1)]
     for dataset in DATASETS:
         rows = [s for s in summary if s["dataset"] == dataset]
+        dataset = shown(dataset)
         if not rows:
             continue
         timed = [[s for s in rows if s["method"] == m and s["machine_seconds"] is not None] for m in methods]
@@ -204,7 +234,10 @@ def collect(runs, results: Path) -> list[dict]:
                 (dest / "machine_seconds").write_text(f"{float(elapsed):.1f}\n")
         elif (dest / "machine_seconds").is_file():
             elapsed = float((dest / "machine_seconds").read_text())
-        summary.append({"dataset": run.dataset, "method": run.method, "seed": run.seed, "steps": run.final_step,
+        algorithm, hparams, refine = run_identity(run.recipe)
+        summary.append({"dataset": row(run.dataset), "source": run.origin, "method": run.method,
+                        "algorithm": algorithm, "hparams": hparams, "refine": refine, "run": dest.name,
+                        "seed": run.seed, "steps": run.final_step,
                         "eval_episodes": run.episodes, "final_score": float(run.evals["score"][-1]),
                         "mean_score": float(run.evals["score"].mean()),
                         "final_return": float(run.evals["return_mean"][-1]), "reward": run.reward,
@@ -214,17 +247,42 @@ def collect(runs, results: Path) -> list[dict]:
     return summary
 
 
+def current(runs) -> tuple[list, list[str]]:
+    """The runs of today's methods, and a line for each BC run from before CORL's BC (Gaussian likelihood)."""
+    kept, old = [], []
+    for r in runs:
+        if run_identity(r.recipe)[0] == "bc" and (r.recipe.get("method", {}).get("bc") or {}).get("loss", "nll") != "mse":
+            old.append(f"{r.shown}: BC with the Gaussian likelihood, before CORL's BC (method.bc.loss: mse) replaced it")
+        else:
+            kept.append(r)
+    return kept, old
+
+
+def write_aggregates(stats: dict, path: Path) -> None:
+    """aggregates.json: the D4RL data's and the generated stand-ins' aggregates apart."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({origin: part.to_json() for origin, part in stats.items()}, indent=1) + "\n")
+    tmp.replace(path)
+
+
 def report(args) -> None:
     results = Path(args.results)
     skipped: list[str] = []
-    runs = gather(Path(args.out), results, skipped)
+    runs, chosen = leave_out_chosen(gather(Path(args.out), results, skipped), read_choices(CHOICES))
+    runs, superseded = current(runs)
+    skipped += chosen + superseded
+    for r in runs:
+        r.dataset = shown(ROWS.get(r.dataset, r.dataset))
     budget = {LABELS[m]: steps for m, (steps, _) in BUDGETS.items()}
     unfinished = [r for r in runs if r.final_step < budget.get(r.method, 0)]
     skipped += [f"{r.path.name}: in progress ({r.final_step:,} of {budget[r.method]:,} steps)" for r in unfinished]
     runs = [r for r in runs if r not in unfinished]
     missing = missing_cells(runs)
     groups = group_runs(runs)
-    stats = aggregate(groups, args.reps)
+    parts = {origin: [g for g in groups if g.dataset.endswith(GENERATED_MARK) == (origin == "generated")]
+             for origin in ("d4rl", "generated")}
+    stats = {origin: aggregate(gs, args.reps) for origin, gs in parts.items() if gs}
+    of = {g.dataset: origin for origin, gs in parts.items() for g in gs}
     summary = collect(runs, results)
     (results / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     lines = [f"| dataset | method | steps × seeds | final score | final score IQM [{CI}] | "
@@ -232,40 +290,50 @@ def report(args) -> None:
              "events reached (final) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for g in groups:
-        rows = [s for s in summary if s["dataset"] == g.dataset and s["method"] == g.method]
+        rows = [s for s in summary if s["dataset"] == row(g.dataset) and s["method"] == g.method]
         steps = sorted({s["steps"] for s in rows})
-        paper = PAPER.get(g.dataset, {}).get(g.method)
+        paper = PAPER.get(row(g.dataset), {}).get(g.method)
         lines.append(f"| {g.dataset} | {g.method} | {'/'.join(f'{s // 1000}k' for s in steps)} × {len(rows)} | "
                      f"{_cell([s['final_score'] for s in rows])} | "
-                     f"{interval(stats.cell(g.dataset, g.method).iqm, 1)} | {_cell([s['mean_score'] for s in rows])} | "
+                     f"{interval(stats[of[g.dataset]].cell(g.dataset, g.method).iqm, 1)} | "
+                     f"{_cell([s['mean_score'] for s in rows])} | "
                      f"{_cell([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
                      f"{np.mean([s['final_success'] for s in rows]):.0%} | {np.mean([s['final_events'] for s in rows]):.2f} |")
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
           "|---|---|---|---|---|---|"]
     for dataset in DATASETS:
-        ours = next((r for r in runs if r.dataset == dataset and r.stages and REUSED not in r.stages), None)
+        ours = next((r for r in runs if r.dataset == shown(dataset) and r.stages and REUSED not in r.stages), None)
         if ours:
             s = ours.stages
-            t2.append(f"| {dataset} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
+            t2.append(f"| {shown(dataset)} | {s['original']:,} | {s['split']:,} | {s['ordered']:,} | {s['shorter']:,} | "
                       + " / ".join(f"{v:,}" for v in PAPER_T2[dataset]) + " |")
     plot_learning_curves(groups, results / "curves.png")
-    profile = []
-    if stats.profiles:
-        plot_performance_profile(stats, results / "performance_profile.png")
-        profile = ["![performance profile](performance_profile.png)", ""]
-    write_json(stats, results / "aggregates.json")
+    aggregates, profile = [], []
+    for origin, part in stats.items():
+        what = "the D4RL data" if origin == "d4rl" else "the generated stand-ins"
+        aggregates += [line.replace("## Aggregate over datasets", f"## Aggregate over {what}")
+                       for line in aggregate_lines(part)]
+        if part.profiles:
+            plot_performance_profile(part, results / f"performance_profile_{origin}.png")
+            profile += [f"![performance profile, {what}](performance_profile_{origin}.png)", ""]
+    (results / "performance_profile.png").unlink(missing_ok=True)  # one pooled profile, from before the split
+    write_aggregates(stats, results / "aggregates.json")
     hours = _hours(summary)
     text = ["# Table 1 on this machine", "",
             f"{len(runs)} runs; evaluation every 2000 steps over 10 episodes; score = D4RL-normalised return "
             f"({', '.join(sorted({r.reward for r in runs}))} rewards); mean ± sample std over seeds. "
-            f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h. {iqm_note(stats)}", "",
-            *lines, "", *aggregate_lines(stats), *profile,
+            f"Machine time of the runs (training and evaluation, one core each): {hours:.1f} h. "
+            f"{iqm_note(next(iter(stats.values())))} Datasets marked (generated) are stand-ins made on this machine "
+            "(`rmrl generate`), not D4RL's files; they are aggregated apart from the D4RL data.", "",
+            *lines, "", *aggregates, *profile,
             "## Dataset sizes after each refinement stage (Table 2)", "", *t2, "",
             "![learning curves](curves.png)", "", "## Machine time", "",
             "Hours of one core per cell (training and evaluation), summed over its runs:", "", *machine_time(summary), "",
             "## Commands", "", "```bash",
             "python benchmarks/table1.py setup", "python benchmarks/table1.py run --jobs 2",
-            "python benchmarks/table1.py report", "```", ""]
+            "python benchmarks/table1.py report", "```", "",
+            "Seeds: per dataset the first five that no choice of settings used (`benchmarks/results/choices.json`, "
+            "`benchmarks/PROTOCOL.md`); runs on seeds a choice used are listed under \"Runs left out\".", ""]
     if missing:
         text += ["## Cells not complete yet", "",
                  "The grid's cells with fewer finished seeds than planned (`table1.py run` continues them):", "",
@@ -285,7 +353,8 @@ def main() -> int:
     p.add_argument("command", choices=("setup", "run", "report"))
     p.add_argument("--out", default="runs", help="run directories (not committed)")
     p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "table1"))
-    p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    p.add_argument("--seeds", nargs="+", type=int, default=None,
+                   help="these seeds on every dataset (default: per dataset the first five no choice used)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--datasets", nargs="+", choices=list(DATASETS), help="only these datasets (default: all)")
     p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",

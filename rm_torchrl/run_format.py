@@ -45,3 +45,96 @@ def stage_rows(reports) -> list[str]:
     """The Table 2 rows of ``reports`` (each a ``stages`` mapping): the paper's, and ``reused`` if one has it."""
     reports = list(reports)
     return [k for k in TABLE2_ROWS if k != REUSED or any(REUSED in r for r in reports)]
+
+
+# --- what a run is: algorithm, settings, data treatment, dataset -------------------------------
+
+#: ``data.refine``: ``none`` (the raw data), ``paper`` (the paper's refinement), ``reuse`` (the paper's, then
+#: the sub-trajectories the splice abandons brought back: beyond the paper).
+REFINE = ("none", "paper", "reuse")
+#: ``method.hparams``: whose settings the values are: the algorithm's authors' published ones, or ours'
+#: (``recipes/method/ours.yaml`` with the per-dataset values of ``tuned.ours``, chosen as
+#: ``benchmarks/results/choices.json`` records).
+HPARAMS = ("published", "ours")
+#: The method options that are a preset (algorithm, settings, refinement) rather than an algorithm.
+PRESETS = {("iql", "ours", "paper"): "ours", ("iql", "ours", "reuse"): "ours-reuse"}
+#: Display labels of the presets and algorithms (the paper's Table 1 columns).
+DISPLAY = {"ours": "Ours", "ours-reuse": "ours-reuse", "iql": "IQL", "bc": "BC", "cql": "CQL", "bcq": "BCQ"}
+#: Method entries of recipes written before the method section had one sub-section per algorithm.
+_RENAMED = {"expectile": ("iql", "expectile"), "temperature": ("iql", "temperature"),
+            "actor_dropout": ("iql", "actor_dropout"), "cql_alpha": ("cql", "min_q_weight"),
+            "bcq_lambda": ("bcq", "lmbda"), "bcq_phi": ("bcq", "phi"), "bcq_vae_hidden": ("bcq", "vae_hidden")}
+
+
+def upgrade_recipe(raw: dict) -> dict:
+    """A recipe of any earlier layout in today's, in place (same values, same experiment).
+
+    Before ``data.refine`` named the treatment it was a boolean beside ``data.reuse``, and the method
+    name carried it: ``ours`` / ``ours-reuse`` were IQL with ours' settings on refined data (and older
+    still, ``iql`` with ``refine: true`` was that method). ``method.hparams`` absent: the published settings,
+    except for those presets. ``method.bc`` absent on a BC run: the Gaussian-likelihood BC it was then.
+    """
+    method, data = raw.get("method"), raw.get("data")
+    if not isinstance(method, dict) or not isinstance(data, dict):
+        return raw
+    if any(k in method for k in _RENAMED):
+        for old, (section, new) in _RENAMED.items():
+            if old in method:
+                method.setdefault(section, {})[new] = method.pop(old)
+    name, refine = method.get("name", "iql"), data.get("refine", "none")
+    if isinstance(refine, bool) or "reuse" in data:
+        reuse = bool(data.pop("reuse", False))
+        refine = bool(refine) if isinstance(refine, bool) else refine != "none"
+        if name == "iql" and refine and "hparams" not in method:
+            name = "ours"  # IQL on refined data was the paper's method before it had a name
+        data["refine"] = ("reuse" if reuse else "paper") if refine else "none"
+    if name in ("ours", "ours-reuse"):
+        method["name"] = "iql"
+        method.setdefault("hparams", "ours")
+        if name == "ours-reuse":
+            data["refine"] = "reuse"
+        elif data.get("refine", "none") == "none":
+            data["refine"] = "paper"
+    method.setdefault("hparams", "published")
+    if method.get("name") == "bc" and "bc" not in method:
+        method["bc"] = {"loss": "nll"}
+    return raw
+
+
+def run_identity(recipe: dict) -> tuple[str, str, str]:
+    """(algorithm, hparams, refine) of a run's recipe, of any layout."""
+    raw = upgrade_recipe({"method": dict(recipe.get("method") or {}), "data": dict(recipe.get("data") or {})})
+    return str(raw["method"].get("name", "iql")), str(raw["method"]["hparams"]), str(raw["data"].get("refine", "none"))
+
+
+def run_label(algorithm: str, hparams: str, refine: str) -> str:
+    """The run's short name: a preset's (``ours``, ``ours-reuse``), the algorithm's on raw data with its
+    published settings (``iql``, ``bc``), else all three (``iql-ours-none``, ``bc-published-paper``)."""
+    if (algorithm, hparams, refine) in PRESETS:
+        return PRESETS[algorithm, hparams, refine]
+    if hparams == "published" and refine == "none":
+        return algorithm
+    return f"{algorithm}-{hparams}-{refine}"
+
+
+def display_label(algorithm: str, hparams: str, refine: str) -> str:
+    """How tables name the run: ``Ours``, ``ours-reuse``, ``IQL``, ``BC``, else the algorithm with what
+    differs from its published form on raw data: ``IQL (ours' settings)``, ``BC (refined)``, ``IQL (refined, reuse)``."""
+    label = run_label(algorithm, hparams, refine)
+    if label in DISPLAY:
+        return DISPLAY[label]
+    parts = (["ours' settings"] if hparams == "ours" else []) + (
+        ["refined"] if refine == "paper" else ["refined, reuse"] if refine == "reuse" else [])
+    return f"{DISPLAY.get(algorithm, algorithm.upper())} ({', '.join(parts)})"
+
+
+#: Local Minari ids of the datasets ``rmrl generate`` makes (its default ``--out-name`` namespace).
+GENERATED_PREFIX = "rmrl/"
+
+
+def data_origin(recipe: dict) -> str:
+    """``generated`` for a stand-in made by ``rmrl generate`` (a local Minari ``rmrl/...`` dataset, or a
+    dataset option named ``rmrl-...``), else ``d4rl`` (a D4RL file, or a Minari download)."""
+    data = recipe.get("data") or {}
+    source, name = str(data.get("source") or ""), str(data.get("name") or "")
+    return "generated" if source.startswith(GENERATED_PREFIX) or name.startswith("rmrl-") else "d4rl"

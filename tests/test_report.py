@@ -19,6 +19,7 @@ from rm_torchrl.cli import report as cli_report
 from rm_torchrl.errors import RMError
 from rm_torchrl.report import dataset_label, find_run_dirs, group_runs, load_runs, method_label, read_run, tidy
 from rm_torchrl.report.runs import method_option
+from rm_torchrl.run_format import run_label
 from rm_torchrl.report.tables import results_table, stages_table
 
 pytest.importorskip("matplotlib")
@@ -44,16 +45,19 @@ RECIPE_NAMES = {"BC": "{d}-bc", "BCQ": "{d}-bcq", "IQL": "{d}-iql", "CQL": "{d}_
 
 
 def write_run(root: Path, name: str, seed: int, method: str, refine: bool, score: str, finals: dict,
-              steps=None, stages: dict | None = None, source: str = "", reuse: bool = False) -> Path:
-    """A run directory as the trainer writes it; ``finals`` maps each evaluated step to the metric.
-
-    ``data.reuse`` is written only when ``reuse`` (runs from before the reuse stage have no such key)."""
+              steps=None, stages: dict | None = None, source: str = "", reuse: bool = False,
+              dataset: str | None = None) -> Path:
+    """A run directory as the trainer wrote it before ``data.refine`` named the treatment (a boolean, the
+    method name carrying the rest); ``finals`` maps each evaluated step to the metric. ``data.name`` is
+    ``dataset``, by default ``name`` without its method suffix. ``data.reuse`` is written only when ``reuse``
+    (runs from before the reuse stage have no such key)."""
     steps = tuple(sorted(finals)) if steps is None else steps
+    dataset = dataset or re.sub(r"[-_](ours-reuse|ours|iql-raw|iql|bcq|bc|cql)$", "", name)
     run = root / f"{name}-seed{seed}"
     (run / "logs" / "scalars").mkdir(parents=True)
     recipe = {
         "name": name, "seed": seed, "out": str(root), "resume": False,
-        "data": {"source": source or f"../shared/data/d4rl/{name}.hdf5", "episode_ends": "auto",
+        "data": {"name": dataset, "source": source or f"../shared/data/d4rl/{name}.hdf5", "episode_ends": "auto",
                  "refine": refine, "events": "door" if refine else "", "alpha": 0.5, "constraints": [],
                  **({"reuse": True} if reuse else {})},
         "method": {"name": method},
@@ -129,14 +133,9 @@ def table_rows(text: str) -> dict[str, list[str]]:
 
 # --- labels ----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, expected", [
-    ("door-human", "door-human"), ("door-human-bc", "door-human"), ("door-human_cql", "door-human"),
-    ("door-human-iql-raw", "door-human"), ("door-human-seed3", "door-human"),
-    ("door-human-v0-BCQ-seed1", "door-human-v0"), ("iql", "iql"), ("kitchen-mixed", "kitchen-mixed"),
-    ("door-human-ours-reuse", "door-human"), ("door-human-v0-ours-reuse-seed2", "door-human-v0"),
-])
-def test_dataset_label_from_name(name, expected):
-    assert dataset_label({"name": name, "data": {"source": "x.hdf5"}}) == expected
+@pytest.mark.parametrize("name", ["door-human", "demo-ours", "door-human-v0-BCQ", "kitchen-mixed-iql", "run"])
+def test_dataset_label_is_the_recipes_data_name_never_the_run_name(name):
+    assert dataset_label({"name": name, "data": {"name": "door-human", "source": "x.hdf5"}}) == "door-human"
 
 
 @pytest.mark.parametrize("source, expected", [
@@ -144,28 +143,40 @@ def test_dataset_label_from_name(name, expected):
     ("mydata", "mydata"),
 ])
 def test_dataset_label_from_source(source, expected):
-    recipe = {"name": "door-human-bc", "data": {"source": source}}
+    recipe = {"name": "door-human-bc", "data": {"name": "door-human", "source": source}}
     assert dataset_label(recipe, "source") == expected
-    assert dataset_label({"name": "run", "data": {"source": source}}) == expected  # the default name
+    assert dataset_label({"name": "door-human-bc", "data": {"source": source}}) == expected  # no data.name
+    assert dataset_label({"name": "x", "data": {"name": "data", "source": source}}) == expected  # the placeholder
 
 
-@pytest.mark.parametrize("method, refine, expected", [
-    ("iql", True, "Ours"), ("iql", False, "IQL"), ("bc", False, "BC"), ("bcq", False, "BCQ"),
-    ("cql", False, "CQL"), ("bc", True, "BC (refined)"),
+@pytest.mark.parametrize("method, data, expected", [
+    # the layout of today's recipes: an algorithm, its settings, a data treatment
+    ({"name": "iql", "hparams": "ours"}, {"refine": "paper"}, "Ours"),
+    ({"name": "iql", "hparams": "ours"}, {"refine": "reuse"}, "ours-reuse"),
+    ({"name": "iql", "hparams": "ours"}, {"refine": "none"}, "IQL (ours' settings)"),
+    ({"name": "iql", "hparams": "published"}, {"refine": "none"}, "IQL"),
+    ({"name": "iql", "hparams": "published"}, {"refine": "paper"}, "IQL (refined)"),
+    ({"name": "bc", "hparams": "published"}, {"refine": "paper"}, "BC (refined)"),
+    ({"name": "bc", "hparams": "published"}, {"refine": "reuse"}, "BC (refined, reuse)"),
+    ({"name": "cql", "hparams": "published"}, {"refine": "none"}, "CQL"),
+    # earlier layouts: a boolean refine beside reuse, the method name carrying the treatment
+    ({"name": "ours"}, {"refine": True}, "Ours"), ({"name": "ours-reuse"}, {"refine": True, "reuse": True}, "ours-reuse"),
+    ({"name": "iql"}, {"refine": True}, "Ours"), ({"name": "iql"}, {"refine": False}, "IQL"),
+    ({"name": "bc"}, {"refine": False}, "BC"), ({"name": "bcq"}, {"refine": False, "reuse": False}, "BCQ"),
+    ({"name": "iql", "hparams": "ours"}, {"refine": False, "reuse": False}, "IQL (ours' settings)"),
+    ({"name": "bc"}, {"refine": True, "reuse": True}, "BC (refined, reuse)"),
 ])
-def test_method_label(method, refine, expected):
-    assert method_label({"method": {"name": method}, "data": {"refine": refine}}) == expected
+def test_method_label_comes_from_the_recipe_of_any_layout(method, data, expected):
+    assert method_label({"name": "folder-names-do-not-count", "method": method, "data": data}) == expected
 
 
-@pytest.mark.parametrize("method, expected, option", [
-    ("ours-reuse", "ours-reuse", "ours-reuse"), ("bc", "BC (refined, reuse)", "bc-refined-reuse"),
-    ("iql", "IQL (refined, reuse)", "iql-refined-reuse"),
-])
-def test_method_label_with_the_reuse_stage(method, expected, option):
-    """The reuse stage (beyond the paper) never shares a column with the paper's refinement."""
-    assert method_label({"method": {"name": method}, "data": {"refine": True, "reuse": True}}) == expected
-    assert method_option(expected) == option
-    assert method_option("Ours") == "ours" and method_option("BC (refined)") == "bc-refined"
+@pytest.mark.parametrize("algorithm", ["iql", "bc", "cql", "bcq"])
+@pytest.mark.parametrize("hparams", ["published", "ours"])
+@pytest.mark.parametrize("refine", ["none", "paper", "reuse"])
+def test_method_option_inverts_the_label(algorithm, hparams, refine):
+    """Every (algorithm, settings, treatment) has a label of its own, and the option comes back from it."""
+    label = method_label({"method": {"name": algorithm, "hparams": hparams}, "data": {"refine": refine}})
+    assert method_option(label) == run_label(algorithm, hparams, refine)
 
 
 # --- Table 1 ---------------------------------------------------------------------------------

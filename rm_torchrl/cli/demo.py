@@ -1,8 +1,7 @@
 """``rmrl demo``: the main job as documented, on the real door-human-v0 shipped in the package.
 
 It composes ``dataset=door-human-v0`` with ``method=ours`` and with ``method=iql`` through the
-recipe groups, exactly as ``rmrl train dataset=door-human-v0 method=...`` does (a tuned option
-for the pair included), and overrides only the budget, the evaluation, the names and the threads:
+recipe groups, exactly as ``rmrl train dataset=door-human-v0 method=...`` does, and overrides only the budget, the evaluation, the names and the threads:
 ``SEEDS`` seeds of each, two runs at a time on one thread each. Then ``rmrl report`` writes
 ``OUT/report`` and the demo adds ``OUT/report/demo.md``: score, success rate and events reached
 per method, each beside its budget.

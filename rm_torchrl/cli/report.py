@@ -29,8 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--out", default="reports", metavar="DIR",
                    help="where results.md and the figures go (default: reports/)")
     p.add_argument("--dataset-from", choices=("name", "source"), default="name",
-                   help="dataset label: the recipe name minus seed and method suffixes (default), "
-                        "or the stem of data.source")
+                   help="dataset label: the recipe's data.name (default), or the stem of data.source")
     p.add_argument("--decimals", type=int, default=1, help="decimals in Table 1 (default 1)")
     p.add_argument("--reps", type=int, default=None, metavar="N",
                    help="bootstrap resamples of the CIs (default 2000; seeded, so a report repeats its CIs)")

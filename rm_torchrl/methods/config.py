@@ -11,21 +11,29 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import List, Protocol
 
-#: Method name -> the method section it reads (``None``: no parameters of its own). ``ours`` is IQL
-#: on the refined data with the RM state as policy input; ``ours-reuse`` the same on data refined with the
-#: reuse stage (beyond the paper); the others are the paper's baselines.
-METHOD_SECTIONS = {"ours": "iql", "ours-reuse": "iql", "iql": "iql", "bc": None, "cql": "cql", "bcq": "bcq"}
-ACTORS = ("tanh_normal", "gaussian")
-HPARAMS = ("published", "ours")  # method.hparams: the authors' published settings, or ours' (recipes/method/ours.yaml)  # network.actor: see rm_torchrl.methods.networks.make_actor
+#: Algorithm (``method.name``) -> the method section it reads. The data treatment is ``data.refine`` and whose
+#: settings the values are ``method.hparams``: ``method=ours`` is a preset of the three (recipes/method/ours.yaml).
+METHOD_SECTIONS = {"iql": "iql", "bc": "bc", "cql": "cql", "bcq": "bcq"}
+ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
+BC_LOSSES = ("mse", "nll")  # method.bc.loss
+  # network.actor: see rm_torchrl.methods.networks.make_actor
 
 
 @dataclass
 class IQLConfig:
-    """IQL (Kostrikov et al. 2021), used by ``ours``, ``ours-reuse`` and ``iql``."""
+    """IQL (Kostrikov et al. 2021); the ``ours`` preset is IQL with its own values."""
 
     expectile: float = 0.7  # tau
     temperature: float = 0.5  # inverse temperature beta of the advantage weights
     actor_dropout: float = 0.1  # the IQL authors' actor dropout on Adroit and kitchen
+
+
+@dataclass
+class BCConfig:
+    """Behaviour cloning. ``mse``: CORL's BC (the deterministic action, tanh of the network, regressed on the
+    dataset action); ``nll``: the Gaussian likelihood of the dataset action (this library's BC before)."""
+
+    loss: str = "mse"
 
 
 @dataclass
@@ -47,17 +55,17 @@ class BCQConfig:
 
 @dataclass
 class MethodConfig:
-    name: str = "iql"  # ours | ours-reuse | iql | bc | cql | bcq
+    name: str = "iql"  # the algorithm: iql | bc | cql | bcq
     hparams: str = "published"  # whose settings the values are: published (the algorithm's authors') | ours
     iql: IQLConfig = field(default_factory=IQLConfig)
+    bc: BCConfig = field(default_factory=BCConfig)
     cql: CQLConfig = field(default_factory=CQLConfig)
     bcq: BCQConfig = field(default_factory=BCQConfig)
 
     @property
     def section(self):
-        """This method's own parameters (None for BC)."""
-        name = METHOD_SECTIONS.get(self.name)
-        return None if name is None else getattr(self, name)
+        """This algorithm's own parameters."""
+        return getattr(self, METHOD_SECTIONS[self.name])
 
 
 @dataclass

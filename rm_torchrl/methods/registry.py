@@ -25,8 +25,8 @@ from torchrl.objectives import CQLLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
 from rm_torchrl.methods.bcq import make_bcq_loss, make_bcq_optimizers
-from rm_torchrl.methods.config import (METHOD_SECTIONS, BCQConfig, CQLConfig, IQLConfig, MethodConfig, NetworkConfig,
-                                       OptimConfig, TrainerSection)
+from rm_torchrl.methods.config import (METHOD_SECTIONS, BCConfig, BCQConfig, CQLConfig, IQLConfig, MethodConfig,
+                                       NetworkConfig, OptimConfig, TrainerSection)
 from rm_torchrl.methods.iql import SharedForwardIQLLoss
 from rm_torchrl.methods.losses import ActorSchedule, BCLoss, ForeachSoftUpdate, adam
 from rm_torchrl.methods.method import Method
@@ -39,10 +39,10 @@ class MethodSpec:
     terms: tuple[str, ...]  # loss entries summed into the objective
 
 
-def _bc(_: None, net: NetworkConfig, o: OptimConfig, trainer: TrainerSection, obs_keys, obs_dim, action_dim,
+def _bc(m: BCConfig, net: NetworkConfig, o: OptimConfig, trainer: TrainerSection, obs_keys, obs_dim, action_dim,
         device) -> Method:
     actor = make_actor(obs_keys, obs_dim, action_dim, net.hidden, 0.0, distribution=net.actor)
-    loss = BCLoss(actor.to(device)).to(device)
+    loss = BCLoss(actor.to(device), m.loss).to(device)
     return Method(loss, [adam([(loss.actor_network_params, o.lr_actor, o.weight_decay_pi)], o)], actor, None)
 
 
@@ -89,8 +89,6 @@ def _bcq(m: BCQConfig, net: NetworkConfig, o: OptimConfig, trainer: TrainerSecti
 
 _IQL_TERMS = ("loss_actor", "loss_qvalue", "loss_value")
 METHODS = {
-    "ours": MethodSpec(_iql, _IQL_TERMS),  # IQL on the refined data, the RM state in the policy input
-    "ours-reuse": MethodSpec(_iql, _IQL_TERMS),  # the same on data refined with the reuse stage (data.reuse)
     "iql": MethodSpec(_iql, _IQL_TERMS),
     "bc": MethodSpec(_bc, ("loss_actor",)),
     "cql": MethodSpec(_cql, ("loss_actor", "loss_qvalue", "loss_cql", "loss_alpha")),

@@ -120,7 +120,7 @@ def plot_dataset_sizes(runs: Iterable[Run], path: str | os.PathLike) -> Path:
     """
     sizes = stage_sizes(runs)
     if not sizes:
-        raise RMError("no refined runs (data.refine: true with a refine_report.json) to plot dataset sizes for")
+        raise RMError("no refined runs (data.refine: paper or reuse, with a refine_report.json) to plot dataset sizes for")
     names = list(sizes)
     stages = stage_rows(sizes.values())
     fig = _figure(figsize=(max(6.0, 2.5 + 1.6 * len(names)), 4.2))

@@ -6,23 +6,17 @@ A run directory is what :func:`rm_torchrl.train.trainer.train` writes: ``recipe.
 them; :func:`load_runs` reads them; :func:`group_runs` gathers the seeds of one
 (dataset, method) cell of the paper's Table 1.
 
-Labels (documented rules, so a table never depends on how a directory happens to be named):
+Labels come from the run's ``recipe.yaml`` alone, never from how its directory is named:
 
-* **dataset** -- the recipe ``name`` (the run directory is ``{name}-seed{seed}``) with a trailing
-  ``-seed<N>`` removed and then any trailing method tokens removed (``-iql``, ``-bc``, ``-cql``,
-  ``-bcq``, ``-ours``, ``-reuse``, ``-refined``, ``-rm``, ``-raw``, ``-baseline``; ``_`` works as separator
-  too), so ``door-human``, ``door-human-bc``, ``door-human-ours-reuse`` and ``door-human-iql-raw`` all
-  label ``door-human``.
-  When the name is empty or the default ``run``, or with ``dataset_from="source"``, the label is
-  ``data.source``'s stem instead: ``.../door-human-v0.hdf5`` -> ``door-human-v0``,
+* **dataset** -- ``data.name``; with ``dataset_from="source"``, or when a recipe has no ``data.name`` (or the
+  schema's placeholder ``data``), ``data.source``'s stem: ``.../door-human-v0.hdf5`` -> ``door-human-v0``,
   ``minari:D4RL/door/human-v2`` -> ``door-human-v2``.
-* **method** -- ``Ours`` for ``method.name: ours`` (IQL on refined data, the paper's method; also
-  ``iql`` with ``data.refine: true``, as runs recorded it before); ``ours-reuse`` for ``method.name:
-  ours-reuse`` (ours on data refined with the reuse stage, beyond the paper);
-  otherwise the upper-cased ``method.name`` (``BC``, ``BCQ``, ``IQL``, ``CQL``), with
-  `` (refined)`` (`` (refined, reuse)``) appended when a baseline was itself trained on refined data
-  (with the reuse stage), so refined and raw runs never share a column. :func:`method_option` turns a
-  label back into the recipe option (``ours``, ``ours-reuse``, ``iql``) for aggregates.json.
+* **method** -- the algorithm, its settings and the data treatment
+  (:func:`rm_torchrl.run_format.run_identity`, which reads recipes of every earlier layout), shown as
+  :func:`~rm_torchrl.run_format.display_label` shows them: ``Ours`` (IQL, ours' settings, the paper's
+  refinement), ``ours-reuse``, ``IQL``, ``BC`` (published settings, raw data), else e.g. ``IQL (ours' settings)``,
+  ``BC (refined)``, so runs that differ in any of the three never share a column. :func:`method_option` turns
+  a label back into the run label (``ours``, ``iql``, ``iql-ours-none``) for aggregates.json.
 * **metric** -- the final evaluation's ``score`` column when the recipe sets ``eval.score``
   (the D4RL normalisation), otherwise ``return_mean``.
 """
@@ -41,18 +35,15 @@ from typing import Iterable
 import numpy as np
 
 from rm_torchrl.errors import RMError, read_yaml
-from rm_torchrl.run_format import (EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR, RECIPE_FILE,  # noqa: F401
-                                   REFINE_FILE, REUSED, REWARD_COLUMN, STAGES)
+from rm_torchrl.run_format import (DISPLAY, EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR,  # noqa: F401
+                                   RECIPE_FILE, REFINE_FILE, REUSED, REWARD_COLUMN, STAGES, data_origin, display_label,
+                                   run_identity, run_label)
 
 #: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
 METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
 OURS = "Ours"
 OURS_REUSE = "ours-reuse"  # beyond the paper: ours on data refined with the reuse stage
-METHOD_TOKENS = ("iql", "bc", "cql", "bcq", "ours", "reuse", "refined", "rm", "raw", "baseline")
 DATASET_FROM = ("name", "source")
-
-_SEED_SUFFIX = re.compile(r"[-_]seed\d+$", re.IGNORECASE)
-_METHOD_SUFFIX = re.compile(r"[-_](?:" + "|".join(METHOD_TOKENS) + r")$", re.IGNORECASE)
 
 
 # --- labels ----------------------------------------------------------------------------------
@@ -74,42 +65,30 @@ def dataset_label(recipe: dict, dataset_from: str = "name") -> str:
     """The dataset a run belongs to (see the module docstring for the rules)."""
     if dataset_from not in DATASET_FROM:
         raise RMError(f"dataset labels come from one of {list(DATASET_FROM)}, got {dataset_from!r}")
-    name = str(recipe.get("name") or "").strip()
-    if dataset_from == "name" and name and name != "run":
-        label = _SEED_SUFFIX.sub("", name)
-        while True:
-            shorter = _METHOD_SUFFIX.sub("", label)
-            if shorter == label or not shorter:
-                break
-            label = shorter
-        if label:
-            return label
-    source = str((recipe.get("data") or {}).get("source") or "")
-    if not source:
-        return name or "run"
-    return source_label(source)
+    data = recipe.get("data") or {}
+    name = str(data.get("name") or "").strip()
+    if dataset_from == "name" and name and name != "data":
+        return name
+    source = str(data.get("source") or "")
+    return source_label(source) if source else name or "data"
 
 
 def method_label(recipe: dict) -> str:
-    """``Ours`` for IQL on refined data, ``ours-reuse`` for that method, else the upper-cased method
-    (`` (refined)`` if refined, `` (refined, reuse)`` with the reuse stage)."""
-    name = str((recipe.get("method") or {}).get("name") or "iql").lower()
-    data = recipe.get("data") or {}
-    refined, reuse = bool(data.get("refine", False)), bool(data.get("reuse", False))
-    if name == OURS_REUSE:
-        return OURS_REUSE
-    if name == "ours" or (refined and name == "iql" and not reuse):  # runs from before method "ours" had its name
-        return OURS
-    return name.upper() + (" (refined, reuse)" if refined and reuse else " (refined)" if refined else "")
+    """How tables name the run's method (see the module docstring)."""
+    return display_label(*run_identity(recipe))
 
 
 def method_option(label: str) -> str:
-    """The recipe's ``method`` option behind a label, for files read by programs: ``Ours`` -> ``ours``,
-    ``IQL`` -> ``iql``, ``BC (refined)`` -> ``bc-refined`` (kept apart from the raw ``bc``),
-    ``BC (refined, reuse)`` -> ``bc-refined-reuse``, ``ours-reuse`` as it is."""
-    if label == OURS:
-        return "ours"
-    return label.lower().replace(" (refined, reuse)", "-refined-reuse").replace(" (refined)", "-refined")
+    """The run label behind a display label, for files read by programs: ``Ours`` -> ``ours``, ``IQL`` ->
+    ``iql``, ``BC (refined)`` -> ``bc-published-paper``, ``IQL (ours' settings)`` -> ``iql-ours-none``."""
+    short = {shown: option for option, shown in DISPLAY.items()}
+    if label in short:
+        return short[label]
+    algorithm, _, rest = label.partition(" (")
+    parts = rest.rstrip(")")
+    refine = "reuse" if "reuse" in parts else "paper" if "refined" in parts else "none"
+    return run_label(short.get(algorithm, algorithm.lower()), "ours" if "ours' settings" in parts else "published",
+                     refine)
 
 
 def method_sort_key(label: str) -> tuple:
@@ -150,7 +129,12 @@ class Run:
 
     @property
     def refined(self) -> bool:
-        return bool(self.recipe.get("data", {}).get("refine", False))
+        return run_identity(self.recipe)[2] != "none"
+
+    @property
+    def origin(self) -> str:
+        """``d4rl`` or ``generated`` (a stand-in made by ``rmrl generate``)."""
+        return data_origin(self.recipe)
 
     @property
     def steps(self) -> np.ndarray:
@@ -504,7 +488,7 @@ def group_runs(runs: Iterable[Run]) -> list[Group]:
             if a.seed == b.seed:
                 raise RMError(
                     f"runs {a.path} and {b.path} are both {method} on {dataset} with seed {a.seed}; "
-                    "give them recipe names that differ in more than a method suffix, or report them separately")
+                    "label them apart (another data.name) or report them separately")
         groups.append(Group(dataset, method, members))
     metrics: dict[str, dict[str, Run]] = {}
     for g in groups:

@@ -273,7 +273,7 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
         if orders:
             parts += ["Best event order:", "", *orders, ""]
     else:
-        parts += ["No run trained on refined data (data.refine: true), so there are no stage sizes.", ""]
+        parts += ["No run trained on refined data (data.refine: paper or reuse), so there are no stage sizes.", ""]
     if figures:
         parts += ["## Figures", ""]
         for title, path in figures:

@@ -18,7 +18,8 @@ from typing import Any, Dict, List
 from omegaconf import OmegaConf
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.methods.config import ACTORS, HPARAMS, METHOD_SECTIONS, MethodConfig, NetworkConfig, OptimConfig
+from rm_torchrl.methods.config import ACTORS, BC_LOSSES, METHOD_SECTIONS, MethodConfig, NetworkConfig, OptimConfig
+from rm_torchrl.run_format import HPARAMS, REFINE
 
 DEVICES = "auto | cpu | cuda | cuda:N"
 
@@ -28,6 +29,8 @@ CHOICES = {
     "rm.encoding": ("one_hot", "slots"),
     "method.name": tuple(METHOD_SECTIONS),
     "method.hparams": HPARAMS,
+    "method.bc.loss": BC_LOSSES,
+    "data.refine": REFINE,
     "optim.decay": ("l2", "decoupled"),
     "optim.actor_schedule": ("constant", "cosine"),
     "network.actor": ACTORS,
@@ -64,14 +67,18 @@ SIGNAL_REPEAT = 1.0
 
 @dataclass
 class DataConfig:
-    name: str = "data"  # the dataset's label: run names default to <data.name>-<method.name>
+    name: str = "data"  # the dataset's label (reports read it): run names default to <data.name>-<run label>
     source: str = ""  # .hdf5 path, minari:<id> or a local Minari name
     episode_ends: str = "auto"
-    refine: bool = True  # the paper's method; False trains on the raw data (baselines)
-    reuse: bool = False  # beyond the paper: bring back the sub-trajectories the splice abandons (method ours-reuse)
+    refine: str = "none"  # none: the raw data | paper: the paper's refinement | reuse: it, plus the abandoned pieces
     events: str = ""  # event spec, also used online by the RM env transform
     alpha: float = 1.0
     constraints: List[str] = field(default_factory=list)
+
+    @property
+    def refined(self) -> bool:
+        """Whether training sees refined data (with RM states, which the policy then reads)."""
+        return self.refine != "none"
 
 
 @dataclass
@@ -115,7 +122,7 @@ class LoggerConfig:
 
 @dataclass
 class Recipe:
-    name: str = "${data.name}-${method.name}"
+    name: str = "${data.name}-${run_label:${method.name},${method.hparams},${data.refine}}"
     seed: int = 0
     out: str = "runs"
     resume: bool = False
@@ -127,6 +134,9 @@ class Recipe:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
+    #: values a study chose for this dataset, per settings preset (``tuned.ours.temperature``), set by a dataset
+    #: option and read by the preset's interpolations; resolved into their entries, so not in ``recipe.yaml``
+    tuned: Dict[str, Any] = field(default_factory=dict)
 
     @property
     def run_dir(self) -> Path:
@@ -137,4 +147,5 @@ class Recipe:
         data = OmegaConf.to_container(OmegaConf.structured(self), resolve=True)
         own = METHOD_SECTIONS.get(self.method.name)
         data["method"] = {k: v for k, v in data["method"].items() if k in ("name", "hparams") or k == own}
+        data.pop("tuned")
         return data

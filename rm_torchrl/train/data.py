@@ -77,21 +77,22 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
     report = None
     spec = load_event_spec(recipe.data.events) if recipe.data.events else None  # resolved once, passed down
-    use_rm = recipe.data.refine
+    use_rm = recipe.data.refined
+    reuse = recipe.data.refine == "reuse"
     exported = export_record(recipe.data.source) if use_rm and not Path(recipe.data.source).suffix else None
     if exported is not None:  # refined before (rmrl refine --minari-name): its RM states are used as they are
         if exported["events"]["names"] != list(spec.names):
             raise RMError(f"{recipe.data.source} was refined with the events {exported['events']['names']}, "
                           f"but data.events={recipe.data.events!r} declares {list(spec.names)}")
         reused = REUSED in (exported.get("stages") or {})
-        if reused != recipe.data.reuse:
+        if reused != reuse:
             raise RMError(f"{recipe.data.source} was refined {'with' if reused else 'without'} the reuse stage, "
-                          f"but the recipe has data.reuse={str(recipe.data.reuse).lower()}")
+                          f"but the recipe has data.refine={recipe.data.refine}")
         data = split_rm_state(raw)
         report = {**{k: exported[k] for k in ("stages", "order", "groups", "alpha", "reuse") if k in exported},
                   "events": list(spec.names), "refined_before": exported["source"]}
     elif use_rm:
-        data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints, reuse=recipe.data.reuse)
+        data, rep = refine(raw, spec, recipe.data.alpha, recipe.data.constraints, reuse=reuse)
         report = rep.to_dict()
     else:
         data = raw

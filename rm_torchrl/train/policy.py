@@ -108,7 +108,7 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     loc, scale = state["obs_loc"], state["obs_scale"]
     events = load_event_spec(recipe.data.events) if recipe.data.events else None
     obs_keys, obs_dim = ["observation"], loc.shape[-1]
-    if recipe.data.refine:
+    if recipe.data.refined:
         obs_keys.append(ENCODING_KEY)
         obs_dim += EventOrderedRM(events.names).encoding_dim(recipe.rm.encoding)
     probe = make_eval_env(recipe, PolicyInput(obs_keys, obs_dim, 0, loc, scale, events))

@@ -29,6 +29,7 @@ from rm_torchrl.data.embedded import embedded_file
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
 from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
+from rm_torchrl.run_format import run_label, upgrade_recipe
 from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, Recipe, check_seed
 
 #: The package's recipes folder (the config root of ``rmrl train dataset=... method=...``).
@@ -42,10 +43,9 @@ ConfigStore.instance().store(name=SCHEMA, node=Recipe)
 OmegaConf.register_new_resolver("recipes_dir", lambda: str(RECIPES), replace=True)
 #: ``${embedded:door-human-v0.hdf5}``: a data file shipped inside the package (works from any directory).
 OmegaConf.register_new_resolver("embedded", lambda name: str(embedded_file(name)), replace=True)
-#: Method options that take another's tuned values (``recipes/tuned/<that>-<dataset>.yaml``, picked by
-#: ``${tuned_as:${method}}`` in ``train.yaml``): ours-reuse trains exactly like ours, on other data.
-TUNED_AS = {"ours-reuse": "ours"}
-OmegaConf.register_new_resolver("tuned_as", lambda method: TUNED_AS.get(method, method), replace=True)
+#: ``${run_label:${method.name},${method.hparams},${data.refine}}``: the run's short name (``ours``, ``iql``,
+#: ``iql-ours-none``), the default ``name`` after the dataset's.
+OmegaConf.register_new_resolver("run_label", run_label, replace=True)
 
 
 def scaled_to_budget(rate, reference_steps, steps) -> float:
@@ -124,27 +124,9 @@ def load_recipe(path=None, overrides=()) -> Recipe:
     return build_recipe(compose_recipe(path, overrides), recipe_path(path).parent)
 
 
-#: Method entries of recipes written before the method section had one sub-section per method family.
-_RENAMED = {"expectile": ("iql", "expectile"), "temperature": ("iql", "temperature"),
-            "actor_dropout": ("iql", "actor_dropout"), "cql_alpha": ("cql", "min_q_weight"),
-            "bcq_lambda": ("bcq", "lmbda"), "bcq_phi": ("bcq", "phi"), "bcq_vae_hidden": ("bcq", "vae_hidden")}
-
-
-def _upgrade(raw: dict) -> dict:
-    """A run's ``recipe.yaml`` from before the method sub-sections, in today's layout (same values)."""
-    method = raw.get("method")
-    if isinstance(method, dict) and any(k in method for k in _RENAMED):
-        for old, (section, new) in _RENAMED.items():
-            if old in method:
-                method.setdefault(section, {})[new] = method.pop(old)
-        if method.get("name") == "iql" and (raw.get("data") or {}).get("refine", True):
-            method["name"] = "ours"  # IQL on the refined data was the paper's method, now named ours
-    return raw
-
-
 def build_recipe(cfg: DictConfig, base: Path) -> Recipe:
     """A composed config checked against the schema: typed sections, valid choices, finite numbers."""
-    raw = _upgrade(OmegaConf.to_container(cfg, resolve=False))
+    raw = upgrade_recipe(OmegaConf.to_container(cfg, resolve=False))
     raw.pop("hydra", None)
     _check_bools(raw)
     try:
@@ -237,6 +219,8 @@ def validate(recipe: Recipe) -> None:
         if not math.isfinite(value):
             raise RMError(f"recipe: {key} must be a finite number, got {value!r}")
     check_seed(recipe.seed, "recipe: seed")
+    if str(recipe.data.refine).lower() in ("true", "false"):
+        raise RMError(f"recipe: data.refine is none | paper | reuse (true was paper, false none), got {recipe.data.refine!r}")
     for key, choices in CHOICES.items():
         if _lookup(recipe, key) not in choices:
             raise RMError(f"recipe: {key} must be one of {list(choices)}, got {_lookup(recipe, key)!r}")
@@ -248,18 +232,9 @@ def validate(recipe: Recipe) -> None:
         raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):
         raise RMError(f"recipe: trainer.device must be {DEVICES}, got {recipe.trainer.device!r}")
-    if recipe.method.name in ("ours", "ours-reuse") and not recipe.data.refine:
-        raise RMError(f"recipe: method {recipe.method.name} is IQL on the refined data; with data.refine=false "
-                      "use method.name=iql")
-    if recipe.data.reuse and not recipe.data.refine:
-        raise RMError("recipe: data.reuse brings back sub-trajectories the refinement abandons; it needs data.refine=true")
-    if recipe.method.name == "ours-reuse" and not recipe.data.reuse:
-        raise RMError("recipe: method ours-reuse is ours on data refined with the reuse stage; it needs data.reuse=true")
-    if recipe.method.name == "ours" and recipe.data.reuse:
-        raise RMError("recipe: method ours is the paper's refinement; for data.reuse=true use method=ours-reuse")
-    if recipe.data.refine:
+    if recipe.data.refined:
         if not recipe.data.events:
-            raise RMError("recipe: data.events is required when data.refine is true")
+            raise RMError(f"recipe: data.events is required when data.refine is {recipe.data.refine}")
         check_alpha(recipe.data.alpha)
     positive = {
         "trainer.steps": recipe.trainer.steps, "trainer.batch_size": recipe.trainer.batch_size,

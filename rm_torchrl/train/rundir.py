@@ -21,7 +21,7 @@ import torch
 from rm_torchrl import files
 from rm_torchrl.errors import RMError
 from rm_torchrl.files import WriteFailed
-from rm_torchrl.run_format import CHECKPOINT, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES, temp_name
+from rm_torchrl.run_format import CHECKPOINT, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES, temp_name, upgrade_recipe
 
 #: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
 #: logging, threads, compile may change between a run and its continuation).
@@ -162,7 +162,7 @@ def open_run(recipe) -> dict | None:
             raise RMError(f"run directory {run_dir} holds a checkpoint; pass resume=true to continue it "
                           "or pick another name/seed")
         state = load_checkpoint(ckpt)
-        changes = recipe_changes(state["recipe"], recipe.to_dict())
+        changes = recipe_changes(upgrade_recipe(state["recipe"]), recipe.to_dict())
         if changes:
             raise RMError(f"resume=true with a recipe that differs from the checkpoint's: {'; '.join(changes)}")
         if state["step"] > recipe.trainer.steps:
