@@ -63,7 +63,7 @@ ADOPTED = "adopted.json"
 #: committed runs of a default that has changed since (``differences``), kept for the arms table
 BEFORE = "before-fix"
 #: recipe sections that decide what a run learns (the rest: where it runs, how often it logs)
-TRAINING = ("data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints", "data.reuse", "rm",
+TRAINING = ("data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints", "rm",
             "method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau")
 #: steps over which the arms table compares a probe with ours' default runs (the probes' first stretch)
 WINDOW = 100_000

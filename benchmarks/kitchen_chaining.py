@@ -158,7 +158,7 @@ def skill_starts(recipe, n: int, seed: int) -> dict:
     """Per group of the refined order: up to ``n`` first transitions of its kept sub-trajectories."""
     raw = load_dataset(recipe.data.source, episode_ends=recipe.data.episode_ends)
     data, report = refine(raw, load_event_spec(recipe.data.events), recipe.data.alpha, recipe.data.constraints,
-                          reuse=recipe.data.reuse)
+                          reuse=recipe.data.refine == "reuse")
     piece = data["subtrajectory"]
     first = run_starts(piece)
     length = torch.bincount(piece)  # steps of every kept sub-trajectory, indexed by its id
@@ -217,7 +217,7 @@ def main(argv=None) -> int:
                             {d: g["all_qpos"] for d, g in starts["groups"].items()})
     for episode in result["own"]:
         episode.pop("handovers")
-    if loaded.recipe.data.refine:
+    if loaded.recipe.data.refined:
         result["offline"] = diagnose(args.run_dir)["rm_states"]
     probe.env.close()
     result["seconds"] = round(time.time() - t0, 1)

@@ -123,7 +123,8 @@ def write_d4rl_file(path: Path, transitions: int) -> float:
 def _peak_memory_child(path: str, refine: bool) -> None:
     """Peak RSS of the trainer's own set-up (``prepare_data``, ``build_method``) and 50 updates."""
     recipe = Recipe()
-    recipe.data.source, recipe.data.refine, recipe.data.events, recipe.data.alpha = path, refine, "door", 0.5
+    recipe.data.source, recipe.data.events, recipe.data.alpha = path, "door", 0.5
+    recipe.data.refine = "paper" if refine else "none"
     recipe.data.episode_ends = "timeouts"
     training = prepare_data(recipe)
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys,

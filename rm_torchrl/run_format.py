@@ -73,6 +73,8 @@ def upgrade_recipe(raw: dict) -> dict:
     name carried it: ``ours`` / ``ours-reuse`` were IQL with ours' settings on refined data (and older
     still, ``iql`` with ``refine: true`` was that method). ``method.hparams`` absent: the published settings,
     except for those presets. ``method.bc`` absent on a BC run: the Gaussian-likelihood BC it was then.
+    A ``data.refine`` of today's (a string: an override such as ``data.refine=none`` on an old run's recipe)
+    says the treatment, whatever the old entries beside it say.
     """
     method, data = raw.get("method"), raw.get("data")
     if not isinstance(method, dict) or not isinstance(data, dict):
@@ -81,20 +83,23 @@ def upgrade_recipe(raw: dict) -> dict:
         for old, (section, new) in _RENAMED.items():
             if old in method:
                 method.setdefault(section, {})[new] = method.pop(old)
-    name, refine = method.get("name", "iql"), data.get("refine", "none")
-    if isinstance(refine, bool) or "reuse" in data:
+    name, refine = method.get("name", "iql"), data.get("refine")
+    # a boolean is the old layout's, unless the recipe is today's otherwise (method.hparams and no data.reuse):
+    # then a user wrote true/false, which validation refuses with the hint of today's values
+    old = isinstance(refine, bool) and ("reuse" in data or "hparams" not in method)
+    if old or "reuse" in data:
         reuse = bool(data.pop("reuse", False))
-        refine = bool(refine) if isinstance(refine, bool) else refine != "none"
-        if name == "iql" and refine and "hparams" not in method:
-            name = "ours"  # IQL on refined data was the paper's method before it had a name
-        data["refine"] = ("reuse" if reuse else "paper") if refine else "none"
+        if old:
+            if name == "iql" and refine and "hparams" not in method:
+                name = "ours"  # IQL on refined data was the paper's method before it had a name
+            data["refine"] = ("reuse" if reuse else "paper") if refine else "none"
+        elif reuse and refine in ("paper", "reuse"):  # data.reuse=true beside today's value (an old run's recipe)
+            data["refine"] = "reuse"
     if name in ("ours", "ours-reuse"):
         method["name"] = "iql"
         method.setdefault("hparams", "ours")
-        if name == "ours-reuse":
-            data["refine"] = "reuse"
-        elif data.get("refine", "none") == "none":
-            data["refine"] = "paper"
+        if "refine" not in data:  # a value of today's (data.refine=none on an old run's recipe) stays as it is
+            data["refine"] = "reuse" if name == "ours-reuse" else "paper"
     method.setdefault("hparams", "published")
     if method.get("name") == "bc" and "bc" not in method:
         method["bc"] = {"loss": "nll"}

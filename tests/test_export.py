@@ -19,7 +19,7 @@ from rm_torchrl.segments import run_starts
 from rm_torchrl.train import load_recipe, train
 
 from conftest import leftovers
-from test_train import make_recipe, write_d4rl
+from test_train import make_recipe, policy_inputs, write_d4rl
 
 NAME = "test/door-refined-v0"
 
@@ -83,8 +83,9 @@ def test_torchrl_reads_it_from_the_local_minari_cache(exported, refined):
 
 
 def test_training_on_the_export_is_training_on_the_refined_data(exported, source, tmp_path):
-    """``rmrl train`` on the export uses its RM states: the same run as refining the source, bit for bit."""
-    recipe = make_recipe(tmp_path, source)
+    """``rmrl train`` on the export (data.refine=paper) uses its RM states: the same run as refining the source,
+    bit for bit."""
+    recipe = make_recipe(tmp_path, source, refine="paper")
     a = train(load_recipe(recipe, ["name=refined-here", "trainer.steps=30"]), progress=False)
     b = train(load_recipe(recipe, ["name=from-export", "trainer.steps=30", f"data.source={exported}"]), progress=False)
     sa, sb = torch.load(a / "checkpoint.pt", weights_only=True), torch.load(b / "checkpoint.pt", weights_only=True)
@@ -94,9 +95,14 @@ def test_training_on_the_export_is_training_on_the_refined_data(exported, source
     with pytest.raises(Exception, match="was refined with the events"):
         train(load_recipe(recipe, ["name=other-events", "trainer.steps=5", f"data.source={exported}",
                                    "data.events=relocate"]), progress=False)
-    with pytest.raises(RMError, match="was refined without the reuse stage, but the recipe has data.reuse=true$"):
-        train(load_recipe(recipe, ["name=reuse", "trainer.steps=5", f"data.source={exported}", "data.reuse=true"]),
+    with pytest.raises(RMError, match="was refined without the reuse stage, but the recipe has data.refine=reuse$"):
+        train(load_recipe(recipe, ["name=reuse", "trainer.steps=5", f"data.source={exported}", "data.refine=reuse"]),
               progress=False)
+    # data.refine=none on the export: its transitions as they are, the policy reading the observation alone
+    raw = train(load_recipe(recipe, ["name=raw", "trainer.steps=5", f"data.source={exported}", "data.refine=none"]),
+                progress=False)
+    assert not (raw / "refine_report.json").exists() and policy_inputs(raw) == ["observation"]
+    assert policy_inputs(b) == ["observation", "rm_encoding"]
 
 
 def test_cli_refine_writes_the_export_and_refuses_a_taken_name_before_working(exported, source, tmp_path, capsys):

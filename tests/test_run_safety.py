@@ -109,9 +109,14 @@ def test_a_resume_with_another_method_is_refused_before_anything_is_written(tmp_
     recipe = make_recipe(tmp_path, dataset)
     run_dir = train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
     before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
-    with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: True -> False; .*method.name: 'iql' -> 'bc'"):
-        train(load_recipe(recipe, ["resume=true", "method.name=bc", "data.refine=false", "trainer.steps=20"]),
-              progress=False)
+    with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: 'paper' -> 'none'; "
+                                      r"method.bc.loss: \(absent\) -> 'mse'; .*method.name: 'iql' -> 'bc'"):
+        train(load_recipe(recipe, ["resume=true", "method.name=bc", "method.bc.loss=mse", "data.refine=none",
+                                   "trainer.steps=20"]), progress=False)
+    with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: 'paper' -> 'reuse'$"):
+        train(load_recipe(recipe, ["resume=true", "data.refine=reuse", "trainer.steps=20"]), progress=False)
+    with pytest.raises(RMError, match=r"differs from the checkpoint's: method.hparams: 'published' -> 'ours'$"):
+        train(load_recipe(recipe, ["resume=true", "method.hparams=ours", "trainer.steps=20"]), progress=False)
     assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
 
 

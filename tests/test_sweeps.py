@@ -17,12 +17,51 @@ import yaml
 from rm_torchrl.cli.main import main
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
+from rm_torchrl.methods.config import METHOD_SECTIONS
+from rm_torchrl.run_format import HPARAMS, REFINE, run_label
 from rm_torchrl.train.recipe import RECIPES, scaled_to_budget
 
 from test_train import make_recipe, write_d4rl
 
 DATASETS = sorted(p.stem for p in (RECIPES / "dataset").glob("*.yaml"))
-METHODS = sorted(p.stem for p in (RECIPES / "method").glob("*.yaml"))
+METHODS = sorted(p.stem for p in (RECIPES / "method").glob("*.yaml"))  # the method options
+#: the options that are a preset (algorithm, settings, data treatment); each other option is an algorithm with
+#: its authors' published settings on the raw data
+PRESETS = {"ours": ("iql", "ours", "paper"), "ours-reuse": ("iql", "ours", "reuse")}
+
+
+def identity(option: str) -> tuple[str, str, str]:
+    """(method.name, method.hparams, data.refine) that the method option ``option`` sets."""
+    return PRESETS.get(option, (option, "published", "none"))
+
+
+def flat(d: dict, prefix: str = "") -> dict:
+    """``{"a.b": value}`` of a nested mapping."""
+    out = {}
+    for key, value in d.items():
+        if isinstance(value, dict) and value:
+            out.update(flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def option_file(group: str, name: str) -> dict:
+    """The option file ``recipes/GROUP/NAME.yaml`` with the option files its defaults list names merged under it
+    (the option's own entries win), as Hydra composes them: what the file itself says, not what the code makes of it."""
+    raw = yaml.safe_load((RECIPES / group / f"{name}.yaml").read_text()) or {}
+    merged: dict = {}
+    for parent in raw.pop("defaults", []):
+        if parent != "_self_":
+            merged = _merge(merged, option_file(group, parent))
+    return _merge(merged, raw)
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for key, value in b.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -46,12 +85,67 @@ def steps_of(run_dir: Path) -> int:
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("data", DATASETS)
 def test_every_dataset_composes_with_every_method(data, method):
+    """A method option is an algorithm (published settings, raw data) or a preset of the three; the run is named
+    after the option; the resolved recipe holds the algorithm's own section only, and no tuned values."""
     recipe = load_recipe(None, [f"dataset={data}", f"method={method}", "seed=2", "out=OUT"])
     assert recipe.run_dir == Path("OUT") / f"{data}-{method}-seed2"
-    assert recipe.method.name == method and recipe.data.refine == method.startswith("ours")
-    assert recipe.data.reuse == (method == "ours-reuse")
+    algorithm, hparams, refine = identity(method)
+    assert (recipe.method.name, recipe.method.hparams, recipe.data.refine) == (algorithm, hparams, refine)
+    assert recipe.data.refined == (refine != "none") and run_label(algorithm, hparams, refine) == method
     assert recipe.eval.env and recipe.data.events and recipe.data.source
-    assert set(recipe.to_dict()["method"]) <= {"name", "iql", "cql", "bcq"}
+    written = recipe.to_dict()
+    assert set(written["method"]) == {"name", "hparams", METHOD_SECTIONS[algorithm]} and "tuned" not in written
+    assert "reuse" not in written["data"]
+
+
+def test_the_method_options_are_the_algorithms_and_the_presets():
+    assert set(METHODS) == set(METHOD_SECTIONS) | set(PRESETS)
+    assert all(option_file("method", option)["method"]["name"] == identity(option)[0] for option in METHODS
+               if option not in PRESETS)
+
+
+@pytest.mark.parametrize("refine", REFINE)
+@pytest.mark.parametrize("algorithm", sorted(METHOD_SECTIONS))
+def test_every_algorithm_composes_with_every_data_treatment(algorithm, refine):
+    """method=ALGORITHM data.refine=<any>: the algorithm's published settings on that data, named for what differs
+    from the option (door-human-v0-bc-published-paper); only data.refine and the name change."""
+    recipe = load_recipe(None, ["dataset=door-human-v0", f"method={algorithm}", f"data.refine={refine}"])
+    assert (recipe.method.name, recipe.method.hparams, recipe.data.refine) == (algorithm, "published", refine)
+    assert recipe.name == "door-human-v0-" + (algorithm if refine == "none" else f"{algorithm}-published-{refine}")
+    option = load_recipe(None, ["dataset=door-human-v0", f"method={algorithm}"]).to_dict()
+    assert {k for k, v in flat(recipe.to_dict()).items() if flat(option).get(k) != v} <= {"name", "data.refine"}
+
+
+#: what ours.yaml itself sets (its own entries, not the iql option's it builds on): ours' settings and its data
+OURS_OWN = set(flat({k: v for k, v in yaml.safe_load((RECIPES / "method" / "ours.yaml").read_text()).items()
+                     if k != "defaults"}))
+
+
+@pytest.mark.parametrize("data", ["door-human-v0", "kitchen-partial", "rmrl-relocate-human"])
+def test_ours_is_iql_with_ours_settings_on_the_refined_data(data):
+    """method=ours is method=iql with the values ours.yaml sets (the dataset's tuned ones included) and
+    data.refine=paper: the same recipe apart from method.hparams and the name."""
+    ours = flat(load_recipe(None, [f"dataset={data}", "method=ours"]).to_dict())
+    iql = flat(load_recipe(None, [f"dataset={data}", "method=iql"]).to_dict())
+    assert {"data.refine", "method.hparams", "method.iql.temperature", "optim.lr_actor"} <= OURS_OWN
+    changed = {k for k in ours.keys() | iql.keys() if ours.get(k) != iql.get(k)}
+    assert {"data.refine", "method.hparams"} <= changed <= OURS_OWN | {"name"}
+    as_iql = load_recipe(None, [f"dataset={data}", "method=iql",
+                                *(f"{k}={ours[k]}" for k in sorted(OURS_OWN - {"method.hparams"}))])
+    assert (as_iql.method.hparams, as_iql.name) == ("published", f"{data}-iql-published-paper")
+    assert {**flat(as_iql.to_dict()), "method.hparams": None, "name": None} == {**ours, "method.hparams": None,
+                                                                                "name": None}
+
+
+@pytest.mark.parametrize("data", ["door-human-v0", "kitchen-partial"])
+def test_ours_on_the_raw_data_keeps_ours_settings_under_its_own_name(data):
+    """method=ours data.refine=none: IQL with ours' settings on the raw data (the refinement's control),
+    <data>-iql-ours-none, without the RM encoding; ours-reuse with data.refine=none is the same run."""
+    ours = load_recipe(None, [f"dataset={data}", "method=ours"]).to_dict()
+    for option in ("ours", "ours-reuse"):
+        raw = load_recipe(None, [f"dataset={data}", f"method={option}", "data.refine=none"])
+        assert (raw.name, raw.method.hparams, raw.data.refined) == (f"{data}-iql-ours-none", "ours", False)
+        assert raw.to_dict() == {**ours, "name": f"{data}-iql-ours-none", "data": {**ours["data"], "refine": "none"}}
 
 
 def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp_path):
@@ -64,32 +158,40 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
     assert again.trainer.steps == 7 and again.to_dict()["method"] == named["method"]
 
 
-#: each dataset option with a studied temperature for ours -> the tuned file holding the study's choice
-STUDIED = {d: "ours-kitchen" for d in DATASETS if "kitchen" in d} | {
-    d: "ours-door-cloned" for d in ("door-cloned", "rmrl-door-cloned")} | {
-    d: "ours-relocate" for d in DATASETS if "relocate" in d}
+#: the dataset options a temperature study covered: each carries (or inherits) tuned.ours
+STUDIED = {d for d in DATASETS if "kitchen" in d or "relocate" in d or d.endswith("door-cloned")}
+#: ours' temperature where no study chose one: the fallback of ours.yaml's ${oc.select:tuned.ours.temperature,...}
+OURS_TEMPERATURE = yaml.safe_load((RECIPES / "method" / "ours.yaml").read_text())["method"]["iql"]["temperature"]
 
 
 @pytest.mark.parametrize("method", ["ours", "ours-reuse"])
 @pytest.mark.parametrize("data", sorted(STUDIED))
 def test_studied_datasets_give_ours_their_temperature(data, method):
-    """recipes/tuned/ours-<dataset>.yaml: a temperature study's choice, for ours-reuse too (tuned_as);
-    the command line still wins."""
-    study = yaml.safe_load((RECIPES / "tuned" / f"{STUDIED[data]}.yaml").read_text())
-    chosen = study["method"]["iql"]["temperature"]
+    """A dataset option's tuned.ours.temperature (its own or its defaults', as rmrl-* inherit) is a temperature
+    study's choice: ours and ours-reuse take it, also on the raw data; the command line still wins."""
+    chosen = option_file("dataset", data)["tuned"]["ours"]["temperature"]
     assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == chosen
+    assert load_recipe(None, [f"dataset={data}", f"method={method}", "data.refine=none"]).method.iql.temperature == chosen
     assert load_recipe(None, [f"dataset={data}", f"method={method}", "method.iql.temperature=7"]).method.iql.temperature == 7
-    assert load_recipe(None, ["dataset=door-human-v0", f"method={method}"]).method.iql.temperature == 10.0
+
+
+@pytest.mark.parametrize("data", sorted(set(DATASETS) - STUDIED))
+def test_unstudied_datasets_give_ours_its_own_temperature(data):
+    fallback = float(OURS_TEMPERATURE.rstrip("}").rpartition(",")[2])
+    assert OURS_TEMPERATURE.startswith("${oc.select:tuned.ours.temperature,")
+    for method in ("ours", "ours-reuse"):
+        assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == fallback
 
 
 @pytest.mark.parametrize("data", DATASETS)
 def test_ours_reuse_is_ours_with_the_reuse_stage(data):
-    """The same recipe as ours but for the method's name, data.reuse and the run's name."""
+    """The same recipe as ours (the same algorithm and settings) but for data.refine and the run's name."""
     ours = load_recipe(None, [f"dataset={data}", "method=ours"]).to_dict()
     reuse = load_recipe(None, [f"dataset={data}", "method=ours-reuse"]).to_dict()
-    assert reuse["name"] == f"{ours['data']['name']}-ours-reuse" and reuse["data"]["reuse"] and not ours["data"]["reuse"]
+    assert (ours["name"], reuse["name"]) == (f"{ours['data']['name']}-ours", f"{ours['data']['name']}-ours-reuse")
+    assert (ours["data"]["refine"], reuse["data"]["refine"]) == ("paper", "reuse")
     for recipe in (ours, reuse):
-        del recipe["name"], recipe["data"]["reuse"], recipe["method"]["name"]
+        del recipe["name"], recipe["data"]["refine"]
     assert reuse == ours
 
 
@@ -97,8 +199,9 @@ def test_ours_reuse_is_ours_with_the_reuse_stage(data):
 def test_ours_actor_rate_keeps_the_50k_budgets_sum(steps, rate):
     """Up to 50k updates ours' actor runs at 3e-4; longer runs get 3e-4 * 50k / steps (the door 500k study), and
     its resolved recipe holds the number. The baselines keep 3e-4; the command line still wins."""
-    for method in ("ours", "ours-reuse"):
-        recipe = load_recipe(None, ["dataset=door-human-v0", f"method={method}", f"trainer.steps={steps}"])
+    for method in ("ours", "ours-reuse", "ours data.refine=none"):
+        option, *more = method.split()
+        recipe = load_recipe(None, ["dataset=door-human-v0", f"method={option}", f"trainer.steps={steps}", *more])
         assert recipe.optim.lr_actor == rate and recipe.to_dict()["optim"]["lr_actor"] == rate
     assert load_recipe(None, ["method=iql", f"trainer.steps={steps}"]).optim.lr_actor == 3e-4
     assert load_recipe(None, ["method=ours", f"trainer.steps={steps}", "optim.lr_actor=1e-4"]).optim.lr_actor == 1e-4
@@ -112,23 +215,32 @@ def test_a_bad_budget_scaled_rate_is_a_one_line_error():
         scaled_to_budget("fast", 50_000, 10)
 
 
-def test_a_tuned_file_reaches_its_own_method_only(tmp_path):
-    """With a value no method has (the studies' 0.5 is also IQL's own), a leak to the baselines shows."""
+def test_a_datasets_tuned_values_reach_ours_settings_only(tmp_path):
+    """With a value no method has (the studies' 0.5 is also IQL's own), a leak to the published settings shows:
+    tuned.ours reaches ours' settings (ours, ours-reuse, on any data), never an algorithm's published ones,
+    whatever their data; and it stays out of the run's recipe.yaml (the value it resolved into is there)."""
     recipes = tmp_path / "recipes"
     shutil.copytree(RECIPES, recipes)
-    (recipes / "tuned" / "ours-door-human-v0.yaml").write_text(
-        "# @package _global_\nmethod:\n  iql:\n    temperature: 3.25\n")
+    option = recipes / "dataset" / "door-human-v0.yaml"
+    option.write_text(option.read_text() + "tuned:\n  ours: {temperature: 3.25}\n")
     train = recipes / "train.yaml"
-    assert load_recipe(train, ["dataset=door-human-v0", "method=ours"]).method.iql.temperature == 3.25
-    assert load_recipe(train, ["dataset=door-human-v0", "method=ours-reuse"]).method.iql.temperature == 3.25
-    for baseline in set(METHODS) - {"ours", "ours-reuse"}:
-        assert (load_recipe(train, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"]
-                == load_recipe(None, ["dataset=door-human-v0", f"method={baseline}"]).to_dict()["method"])
+    for method in (["method=ours"], ["method=ours-reuse"], ["method=ours", "data.refine=none"]):
+        recipe = load_recipe(train, ["dataset=door-human-v0", *method])
+        assert recipe.method.iql.temperature == 3.25 and recipe.tuned == {"ours": {"temperature": 3.25}}
+        assert recipe.to_dict()["method"]["iql"]["temperature"] == 3.25 and "tuned" not in recipe.to_dict()
+    for algorithm in METHOD_SECTIONS:
+        for refine in REFINE:
+            args = ["dataset=door-human-v0", f"method={algorithm}", f"data.refine={refine}"]
+            assert load_recipe(train, args).to_dict()["method"] == load_recipe(None, args).to_dict()["method"]
 
 
-def test_only_the_studied_datasets_have_tuned_files():
-    tuned = {p.stem for p in (RECIPES / "tuned").glob("*.yaml")}
-    assert tuned == {f"ours-{d}" for d in STUDIED} | set(STUDIED.values())  # nothing else is tuned
+def test_only_the_studied_datasets_have_tuned_values():
+    """tuned.<settings> holds values a study chose for a dataset, keyed by whose settings they are (ours)."""
+    tuned = {d: load_recipe(None, [f"dataset={d}", "method=iql"]).tuned for d in DATASETS}
+    assert {d for d, values in tuned.items() if values} == STUDIED  # nothing else is tuned
+    assert all(set(values) <= set(HPARAMS) for values in tuned.values())
+    assert all(tuned[d] == option_file("dataset", d)["tuned"] for d in STUDIED)
+    assert not (RECIPES / "tuned").exists()
 
 
 @pytest.mark.parametrize("override,message", [

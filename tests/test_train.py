@@ -1,6 +1,7 @@
 """The recipe trainer on tiny data: recipes, losses going down, checkpoint/resume, CLI."""
 from __future__ import annotations
 
+import copy
 import csv
 import os
 import re
@@ -11,6 +12,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from rm_torchrl.cli.main import main
 from rm_torchrl.data.synthetic import make_door_like
@@ -45,15 +47,46 @@ def dataset(tmp_path_factory) -> Path:
     return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
 
 
-def make_recipe(tmp_path: Path, dataset: Path, text: str = "") -> Path:
+def make_recipe(tmp_path: Path, dataset: Path, text: str = "", refine: str | None = "paper") -> Path:
+    """A plain recipe on the tiny data: the schema's algorithm (IQL) on the data the paper's refinement makes
+    (``refine``; None leaves data.refine to what the recipe composes), small networks, a short budget."""
     path = tmp_path / "recipe.yaml"
+    treatment = f"refine: {refine}, " if refine else ""
     path.write_text(
         f"name: tiny\nout: {tmp_path / 'runs'}\n"
-        f"data: {{source: {dataset}, events: door, alpha: 0.5}}\n"
+        f"data: {{source: {dataset}, events: door, {treatment}alpha: 0.5}}\n"
         "network: {hidden: [32, 32]}\n"
         "trainer: {steps: 200, batch_size: 64, log_every: 20, checkpoint_every: 100, threads: 1}\n" + text
     )
     return path
+
+
+def option_recipe(tmp_path: Path, dataset: Path, method: str, text: str = "") -> Path:
+    """The tiny recipe over a method option (``recipes/method/METHOD.yaml``): the option's algorithm, settings
+    and data treatment, with the tiny data, networks and budget, not compiled; the run's name is the default
+    one, ``tiny-<run label>``."""
+    path = make_recipe(tmp_path, dataset, text, refine=None)
+    body = path.read_text().replace("name: tiny\n", "").replace("{source:", "{name: tiny, source:")
+    path.write_text(f"defaults: [rmrl_schema, {{method: {method}}}, _self_]\n"
+                    + body.replace("threads: 1}", "threads: 1, compile: false}"))
+    return path
+
+
+def policy_inputs(run_dir: Path) -> list[str]:
+    """The keys the policy of ``run_dir``'s checkpoint reads (its weights load: they were trained on them)."""
+    from rm_torchrl import load_policy
+
+    return list(load_policy(run_dir, env="AdroitHandDoor-v1").policy.in_keys)
+
+
+def old_layout(recipe: dict) -> dict:
+    """Today's recipe of an ``ours`` run as the trainer wrote it before ``data.refine`` named the treatment:
+    the method's name carried the preset, ``data.refine`` was a boolean beside ``data.reuse``, no ``method.hparams``."""
+    old = copy.deepcopy(recipe)
+    assert (old["method"].pop("hparams"), old["method"]["name"], old["data"]["refine"]) == ("ours", "iql", "paper")
+    old["method"]["name"] = "ours"
+    old["data"].update(refine=True, reuse=False)
+    return old
 
 
 def read_scalar(run_dir: Path, name: str) -> list[float]:
@@ -61,11 +94,16 @@ def read_scalar(run_dir: Path, name: str) -> list[float]:
 
 
 @pytest.mark.parametrize("method,term,actor", [("iql", "loss_qvalue", "tanh_normal"), ("iql", "loss_actor", "gaussian"),
-                                               ("bc", "loss_actor", "tanh_normal"), ("bc", "loss_actor", "gaussian"),
+                                               ("bc-mse", "loss_actor", "tanh_normal"), ("bc-mse", "loss_actor", "gaussian"),
+                                               ("bc-nll", "loss_actor", "tanh_normal"), ("bc-nll", "loss_actor", "gaussian"),
                                                ("cql", "loss_qvalue", "tanh_normal"), ("bcq", "loss_vae", "tanh_normal")])
 def test_losses_go_down(tmp_path, dataset, method, term, actor):
-    recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={method}", "trainer.steps=200",
-                                                          f"network.actor={actor}"])
+    """bc-mse: CORL's mean squared error of the deterministic action; bc-nll: the likelihood of the dataset action."""
+    algorithm, _, loss = method.partition("-")
+    recipe = load_recipe(make_recipe(tmp_path, dataset), [f"method.name={algorithm}", "trainer.steps=200",
+                                                          f"network.actor={actor}",
+                                                          *([f"method.bc.loss={loss}"] if loss else [])])
+    assert algorithm != "bc" or recipe.to_dict()["method"]["bc"] == {"loss": loss}
     run_dir = train(recipe, progress=False)
     values = read_scalar(run_dir, term)
     assert len(values) == 10
@@ -73,50 +111,201 @@ def test_losses_go_down(tmp_path, dataset, method, term, actor):
 
 
 def test_raw_data_baseline_has_no_rm_input(tmp_path, dataset):
-    recipe = load_recipe(make_recipe(tmp_path, dataset), ["data.refine=false", "trainer.steps=20"])
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["data.refine=none", "trainer.steps=20"])
+    assert not recipe.data.refined
     run_dir = train(recipe, progress=False)
     state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
     assert state["step"] == 20
     assert not (run_dir / "refine_report.json").exists()
+    assert policy_inputs(run_dir) == ["observation"]
 
 
-def test_ours_reuse_trains_like_ours_on_the_reused_data(tmp_path, dataset):
-    """The same IQL build as ours; the run's report has the reuse stage and the report labels it ours-reuse."""
+def test_ours_reuse_is_iql_with_ours_settings_on_the_reused_data(tmp_path, dataset):
+    """The registry holds algorithms only: ours-reuse is IQL (method.hparams=ours) on data.refine=reuse; the run's
+    report has the reuse stage and its recipe reads back as ours-reuse."""
+    from rm_torchrl.methods.config import METHOD_SECTIONS
     from rm_torchrl.methods.registry import METHODS
-    from rm_torchrl.report.runs import method_label, read_recipe, read_refine_report
+    from rm_torchrl.run_format import run_identity, run_label
 
-    assert METHODS["ours-reuse"] == METHODS["ours"]
-    recipe = load_recipe(make_recipe(tmp_path, dataset), ["method.name=ours-reuse", "data.reuse=true",
+    assert set(METHODS) == set(METHOD_SECTIONS) == {"iql", "bc", "cql", "bcq"}
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["method.hparams=ours", "data.refine=reuse",
                                                           "trainer.steps=10", "trainer.log_every=5"])
-    assert recipe.run_dir.name == "tiny-seed0" and recipe.to_dict()["method"].keys() == {"name", "iql"}
+    assert recipe.run_dir.name == "tiny-seed0" and recipe.to_dict()["method"].keys() == {"name", "hparams", "iql"}
     run_dir = train(recipe, progress=False)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=False)["step"] == 10
-    written, report = read_recipe(run_dir), read_refine_report(run_dir)
-    assert method_label(written) == "ours-reuse" and written["data"]["reuse"] is True
+    written = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+    report = __import__("json").loads((run_dir / "refine_report.json").read_text())
+    assert run_identity(written) == ("iql", "ours", "reuse") and run_label(*run_identity(written)) == "ours-reuse"
+    assert written["data"]["refine"] == "reuse" and "reuse" not in written["data"]
     assert list(report["stages"]) == ["original", "split", "ordered", "reused", "shorter"] and "reuse" in report
     assert read_scalar(run_dir, "loss_value")
+    assert policy_inputs(run_dir) == ["observation", "rm_encoding"]
+
+
+#: every algorithm, every data treatment, each at least once: the test below trains them on the tiny data
+TREATMENTS = [("iql", "none"), ("iql", "paper"), ("bc", "none"), ("bc", "paper"), ("cql", "reuse"), ("bcq", "paper")]
+
+
+@pytest.mark.parametrize("algorithm,refine", TREATMENTS)
+def test_any_algorithm_trains_on_any_data_treatment(tmp_path, dataset, algorithm, refine):
+    """A method option (its published settings) with data.refine=<any>: refined data gives the policy the RM
+    encoding and the run a refine report, raw data neither; the default name says what differs from the option."""
+    from rm_torchrl.methods.registry import METHODS
+    from rm_torchrl.run_format import run_label
+
+    recipe = load_recipe(option_recipe(tmp_path, dataset, algorithm), [f"data.refine={refine}", "trainer.steps=5",
+                                                                        "trainer.log_every=5"])
+    assert (recipe.method.name, recipe.method.hparams, recipe.data.refine) == (algorithm, "published", refine)
+    label = algorithm if refine == "none" else f"{algorithm}-published-{refine}"
+    assert run_label(algorithm, "published", refine) == label and recipe.run_dir.name == f"tiny-{label}-seed0"
+    run_dir = train(recipe, progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 5
+    for term in METHODS[algorithm].terms:
+        assert np.isfinite(read_scalar(run_dir, term)).all(), term
+    assert (run_dir / "refine_report.json").exists() == (refine != "none")
+    assert yaml.safe_load((run_dir / "recipe.yaml").read_text())["data"]["refine"] == refine
+    assert policy_inputs(run_dir) == (["observation"] if refine == "none" else ["observation", "rm_encoding"])
+
+
+@pytest.mark.parametrize("refine", ["paper", "none"])
+def test_ours_on_raw_data_is_iql_with_ours_settings_and_no_rm_input(tmp_path, dataset, refine):
+    """method=ours data.refine=none: the same settings as ours, trained on the raw data, named for its three parts
+    (tiny-iql-ours-none), its policy reading the observation alone."""
+    base = load_recipe(option_recipe(tmp_path, dataset, "ours"), ["trainer.steps=5"])
+    recipe = load_recipe(option_recipe(tmp_path, dataset, "ours"), [f"data.refine={refine}", "trainer.steps=5"])
+    assert (recipe.method.name, recipe.method.hparams, recipe.data.refine) == ("iql", "ours", refine)
+    assert recipe.name == ("tiny-ours" if refine == "paper" else "tiny-iql-ours-none")
+    drop = lambda r: {**r, "name": None, "data": {**r["data"], "refine": None}}  # noqa: E731
+    assert drop(recipe.to_dict()) == drop(base.to_dict())  # ours' settings whatever the data
+    run_dir = train(recipe, progress=False)
+    assert run_dir.name == f"{recipe.name}-seed0"
+    assert (run_dir / "refine_report.json").exists() == (refine == "paper")
+    assert policy_inputs(run_dir) == (["observation", "rm_encoding"] if refine == "paper" else ["observation"])
+
+
+def test_a_run_recipe_of_the_old_layout_loads_as_today(tmp_path, dataset):
+    """A run's recipe.yaml written before data.refine named the treatment (method.name ours, data.refine a boolean
+    beside data.reuse, no method.hparams) loads as IQL with ours' settings on the paper's refined data, its values
+    as written; ours-reuse as the reuse treatment, an old BC as the likelihood BC it was. Today's data.refine
+    given on top of it says the treatment."""
+    old = tmp_path / "old" / "recipe.yaml"
+    old.parent.mkdir()
+    old.write_text(
+        f"name: tiny-ours\nseed: 3\nout: {tmp_path / 'runs'}\nresume: false\n"
+        f"data: {{name: tiny, source: {dataset}, episode_ends: auto, refine: true, reuse: false, events: door, "
+        "alpha: 0.5, constraints: []}\n"
+        "method: {name: ours, iql: {expectile: 0.9, temperature: 3.5, actor_dropout: 0.1}}\n"
+        "network: {hidden: [32, 32], actor: gaussian}\n"
+        "trainer: {steps: 10, batch_size: 64, threads: 1, compile: false}\n")
+    recipe = load_recipe(old)
+    assert (recipe.method.name, recipe.method.hparams, recipe.data.refine) == ("iql", "ours", "paper")
+    assert (recipe.name, recipe.seed, recipe.method.iql.temperature, recipe.method.iql.expectile) == ("tiny-ours", 3, 3.5, 0.9)
+    assert recipe.to_dict()["method"] == {"name": "iql", "hparams": "ours",
+                                          "iql": {"expectile": 0.9, "temperature": 3.5, "actor_dropout": 0.1}}
+    assert "reuse" not in recipe.to_dict()["data"]
+    for override, treatment in (("data.refine=none", "none"), ("data.refine=reuse", "reuse"), ("data.refine=paper", "paper")):
+        again = load_recipe(old, [override])
+        assert (again.method.name, again.method.hparams, again.data.refine) == ("iql", "ours", treatment), override
+    text = old.read_text()
+    old.write_text(text.replace("reuse: false", "reuse: true").replace("name: ours", "name: ours-reuse"))
+    assert (load_recipe(old).method.hparams, load_recipe(old).data.refine) == ("ours", "reuse")
+    assert load_recipe(old, ["data.refine=none"]).data.refine == "none"
+    old.write_text(text.replace("refine: true, reuse: false", "refine: false").replace("name: ours,", "name: bc,"))
+    bc = load_recipe(old)
+    assert (bc.method.name, bc.method.hparams, bc.data.refine, bc.to_dict()["method"]["bc"]) == (
+        "bc", "published", "none", {"loss": "nll"})
+
+
+@pytest.mark.parametrize("value", ["true", "false"])
+def test_a_boolean_data_refine_is_a_one_line_hint(tmp_path, dataset, value, capsys):
+    """data.refine is none | paper | reuse: true or false (the old layout's values), given on the command line to a
+    composed recipe, a plain one or a run's own recipe.yaml, is refused in one line that says what they were."""
+    hint = ("recipe: data.refine is none | paper | reuse (true was paper, false none), "
+            f"got {value.capitalize()!r}")
+    plain = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(plain, ["trainer.steps=2"]), progress=False)
+    for path, more in ((None, ["dataset=door-human-v0", "method=ours"]), (None, ["method=bc"]), (plain, []),
+                       (run_dir / "recipe.yaml", [])):
+        with pytest.raises(RMError) as err:
+            load_recipe(path, [*more, f"data.refine={value}"])
+        assert str(err.value) == hint, (path, more)
+    for path in (plain, run_dir / "recipe.yaml"):
+        assert main(["train", str(path), f"data.refine={value}", "name=other", "--no-progress"]) == 2
+        assert capsys.readouterr().err == f"rmrl train: error: {hint}\n"
+    assert not (tmp_path / "runs" / "other-seed0").exists()
+
+
+def test_bc_mse_is_the_squared_error_of_the_deterministic_action_and_trains_the_mlp_only():
+    """CORL's BC (method.bc.loss=mse): the mean over the batch and the action dimensions of (tanh(MLP(s)) - a)^2;
+    the Gaussian actor's state-independent log-std gets no gradient from it (the likelihood loss trains it)."""
+    from tensordict import TensorDict
+
+    from rm_torchrl.methods.losses import BCLoss
+    from rm_torchrl.methods.networks import ConcatMLP, GaussianHead, make_actor
+
+    torch.manual_seed(0)
+    actor = make_actor(["observation", "rm_encoding"], 5 + 3, 2, [16, 16], distribution="gaussian")
+    batch = TensorDict({"observation": torch.randn(32, 5), "rm_encoding": torch.eye(3)[torch.randint(3, (32,))],
+                        "action": torch.rand(32, 2) * 2 - 1}, [32])
+    mlp = next(m for m in actor.modules() if isinstance(m, ConcatMLP))
+    head = next(m for m in actor.modules() if isinstance(m, GaussianHead))
+    with torch.no_grad():
+        head.log_std.fill_(-0.7)  # a scale away from 1: it must not enter the loss
+    losses = {}
+    for kind in ("mse", "nll"):
+        loss = BCLoss(actor, kind)
+        value = loss(batch.clone())["loss_actor"]
+        params = dict(loss.actor_network_params.flatten_keys(".").items())
+        grads = dict(zip(params, torch.autograd.grad(value, list(params.values()), allow_unused=True)))
+        losses[kind] = value, {k: g for k, g in grads.items() if "log_std" in k}, {
+            k: g for k, g in grads.items() if "log_std" not in k}
+    by_hand = (torch.tanh(mlp(batch["observation"], batch["rm_encoding"])) - batch["action"]).pow(2).mean()
+    mse, log_std, others = losses["mse"]
+    torch.testing.assert_close(mse, by_hand)
+    assert len(log_std) == 1 and all(g is None or not g.any() for g in log_std.values())
+    assert others and all(g is not None and g.abs().sum() > 0 for g in others.values())
+    nll, log_std, _ = losses["nll"]
+    assert not torch.isclose(nll, mse) and all(g is not None and g.abs().sum() > 0 for g in log_std.values())
+    with pytest.raises(ValueError, match="BC loss must be mse or nll, got 'l1'"):
+        BCLoss(actor, "l1")
 
 
 def test_a_recipe_file_with_a_string_for_a_bool_is_refused(tmp_path, dataset, capsys):
     """OmegaConf would read "yes" as true; a recipe says true or false."""
     path = make_recipe(tmp_path, dataset)
-    path.write_text(path.read_text().replace("alpha: 0.5}", 'alpha: 0.5, reuse: "yes"}'))
-    with pytest.raises(RMError, match=r"^recipe: data.reuse must be true or false, got 'yes'$"):
+    path.write_text(path.read_text().replace("threads: 1}", 'threads: 1, normalize_obs: "yes"}'))
+    with pytest.raises(RMError, match=r"^recipe: trainer.normalize_obs must be true or false, got 'yes'$"):
         load_recipe(path)
     assert main(["train", str(path), "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert err == "rmrl train: error: recipe: data.reuse must be true or false, got 'yes'\n"
-    path.write_text(path.read_text().replace('"yes"', "true"))
-    assert load_recipe(path).data.reuse is True
+    assert err == "rmrl train: error: recipe: trainer.normalize_obs must be true or false, got 'yes'\n"
+    path.write_text(path.read_text().replace('"yes"', "false"))
+    assert load_recipe(path).trainer.normalize_obs is False
 
 
-def test_resume_reaches_the_same_parameters(tmp_path, dataset):
-    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight"])
+@pytest.mark.parametrize("layout", ["today", "old"])
+def test_resume_reaches_the_same_parameters(tmp_path, dataset, layout):
+    """old: the first half's checkpoint and recipe.yaml as the trainer wrote them before data.refine named the
+    treatment (method.name ours, data.refine true beside data.reuse false); the run resumes from its own recipe.yaml."""
+    ours = ["method.hparams=ours"]  # IQL with ours' label on the refined data: the old layout's ours
+    straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight", *ours])
     train(straight, progress=False)
-    first = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "trainer.steps=100"])
+    first = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "trainer.steps=100", *ours])
     train(first, progress=False)
-    rest = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "resume=true"])
+    if layout == "today":
+        rest = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "resume=true", *ours])
+    else:
+        ckpt, written = first.run_dir / "checkpoint.pt", first.run_dir / "recipe.yaml"
+        state = torch.load(ckpt, weights_only=True)
+        state["recipe"] = old_layout(state["recipe"])
+        torch.save(state, ckpt)
+        written.write_text(yaml.safe_dump(old_layout(yaml.safe_load(written.read_text())), sort_keys=False))
+        assert "reuse: false" in written.read_text() and "hparams" not in written.read_text()
+        rest = load_recipe(written, ["resume=true", "trainer.steps=200"])
+        assert (rest.method.name, rest.method.hparams, rest.data.refine) == ("iql", "ours", "paper")
+        assert rest.to_dict() == {**straight.to_dict(), "name": "split", "resume": True}
     run_dir = train(rest, progress=False)
+    assert run_dir == first.run_dir
     a = torch.load(straight.run_dir / "checkpoint.pt", weights_only=False)
     b = torch.load(run_dir / "checkpoint.pt", weights_only=False)
     assert a["step"] == b["step"] == 200
@@ -139,14 +328,15 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("trainer.stepz=5", r"unknown key trainer.stepz; allowed under trainer: \["),
         ("trainer.steps=abc", "trainer.steps: Value 'abc' of type 'str' could not be converted to Integer"),
         ("method.iql.expectyle=0.5", r"unknown key method.iql.expectyle"),
-        (("method.name=ours", "data.refine=false"), "method ours is IQL on the refined data"),
-        (("method.name=ours-reuse", "data.reuse=true", "data.refine=false"), "method ours-reuse is IQL on the refined"),
-        ("method.name=ours-reuse", "method ours-reuse is ours on data refined with the reuse stage; it needs data.reuse"),
-        (("method.name=ours", "data.reuse=true"), "method ours is the paper's refinement; for data.reuse=true use"),
-        (("data.reuse=true", "data.refine=false"), "data.reuse brings back .* it needs data.refine=true$"),
-        ("data.reuse=yes", r"^recipe: data.reuse must be true or false, got 'yes'$"),
-        ("data.reuse=1", r"^recipe: data.reuse must be true or false, got 1$"),
-        ("data.refine=on", r"^recipe: data.refine must be true or false, got 'on'$"),
+        ("data.refine=on", r"^recipe: data.refine must be one of \['none', 'paper', 'reuse'\], got 'on'$"),
+        ("data.refine=1", r"^recipe: data.refine must be one of \['none', 'paper', 'reuse'\], got '1'$"),
+        ("data.refine=true", r"^recipe: data.refine is none \| paper \| reuse \(true was paper, false none\), got"),
+        ("data.refine=false", r"^recipe: data.refine is none \| paper \| reuse \(true was paper, false none\), got"),
+        ("data.reuse=true", r"^recipe: unknown key data.reuse; allowed under data: \[.*'refine'"),
+        (("data.refine=reuse", "data.events="), r"^recipe: data.events is required when data.refine is reuse$"),
+        ("method.hparams=mine", r"^recipe: method.hparams must be one of \['published', 'ours'\], got 'mine'$"),
+        ("method.bc.loss=l1", r"^recipe: method.bc.loss must be one of \['mse', 'nll'\], got 'l1'$"),
+        ("method.name=ours-v2", r"^recipe: method.name must be one of \['iql', 'bc', 'cql', 'bcq'\], got 'ours-v2'$"),
         ("trainer.device=tpu", "trainer.device must be auto | cpu | cuda | cuda:N"),
         ("method.name=sac", "method.name must be one of"),
         ("data.alpha=1.5", "alpha must lie in"),

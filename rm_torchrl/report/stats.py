@@ -266,3 +266,17 @@ def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
                 pooled, taus, custom_profile_func=profile, reps=reps, confidence_interval_size=CONFIDENCE)
         profiles = {m: (points[m], *np.asarray(bands[m])) for m in pooled}
     return Aggregates(reps, cells, overall, better, notes, taus, profiles)
+
+
+def cell_iqm(values, reps: int = REPS) -> Estimate:
+    """The IQM of one cell's final scores with its bootstrap 95% CI, seeded on its own: the same runs give
+    the same interval whatever else is reported beside them."""
+    values = np.asarray(values, dtype=float).reshape(-1, 1)
+    return _estimates(_rliable(), {"x": values}, lambda s: iqm(s.reshape(-1, 1)), reps)["x"][0]
+
+
+def probability_of_improvement(x, y, reps: int = REPS) -> Estimate:
+    """P(a run of ``x`` scores above a run of ``y``) (ties count half) on one dataset, with its stratified-bootstrap
+    95% CI over the runs of both (rliable), seeded on its own."""
+    x, y = (np.asarray(v, dtype=float).reshape(-1, 1) for v in (x, y))
+    return _estimates(_rliable(), {"x": (x, y)}, improvement, reps)["x"][0]

@@ -1,0 +1,238 @@
+"""What the refinement is worth apart from the settings: the same algorithm with and without the refined data.
+
+    python benchmarks/refinement_ablation.py run --jobs 2 --set trainer.threads=1 --out DIR [--budget 50k|500k]
+    python benchmarks/refinement_ablation.py collect DIR [DIR ...]   # copy finished runs that match a cell exactly
+    python benchmarks/refinement_ablation.py report                  # summary.json, results.md, curves_*.png
+
+Cells (``rmrl train`` option overrides; every label comes from the run's recipe.yaml):
+
+* IQL with its authors' published settings on the raw data (``method=iql``) and on the refined data
+  (``method=iql data.refine=paper``);
+* IQL with ours' settings (``method.hparams: ours``: expectile 0.9, temperature 10 or the dataset's
+  ``tuned.ours``, weight decay 1e-3, the actor rate rule) on the raw data (``method=ours data.refine=none``) and
+  on the refined data (``method=ours``, the paper's method);
+* BC (CORL's) on the raw and on the refined data (``method=bc``, ``method=bc data.refine=paper``).
+
+Budgets: 50k steps x 5 seeds on door-human-v0 (D4RL's file) and on the generated kitchen-partial, evaluating every
+2,000 steps over 10 episodes (vectorised), as Table 1; 500k steps x 3 seeds on door-human-v0 for IQL with ours'
+settings, evaluating every 10,000. Seeds: per dataset the first that no choice of settings used
+(``benchmarks/results/choices.json``). Runs go to ``--out`` and are resumable (run the command again: finished
+runs are skipped, killed ones continue); ``collect`` copies each finished run whose recipe matches a cell in every
+entry that decides what it learns (a Table 1 run may stand for a cell this way) to ``runs/<run>/`` with its
+``eval.csv``, resolved ``recipe.yaml``, ``refine_report.json``, ``machine_seconds`` and ``collected_from`` (the
+folder it came from). ``run`` skips cells already there.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from rm_torchrl.cli.train import run_grid
+from rm_torchrl.errors import RMError
+from rm_torchrl.files import write_atomic
+from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
+from rm_torchrl.report.plots import plot_learning_curves
+from rm_torchrl.report.runs import Group, find_run_dirs, load_runs, read_eval_csv, read_recipe
+from rm_torchrl.report.stats import REPS, cell_iqm, probability_of_improvement
+from rm_torchrl.run_format import display_label, run_identity, upgrade_recipe
+from rm_torchrl.train.recipe import load_recipe
+from rm_torchrl.train.rundir import load_checkpoint, recipe_changes
+
+ROOT = Path(__file__).resolve().parent.parent
+STUDY = ROOT / "benchmarks" / "results" / "refinement-ablation"
+CHOICES = ROOT / "benchmarks" / "results" / "choices.json"
+#: cell -> the overrides that make it (its run label, as rmrl train names it)
+CELLS = {
+    "iql": ["method=iql"],
+    "iql-published-paper": ["method=iql", "data.refine=paper"],
+    "iql-ours-none": ["method=ours", "data.refine=none"],
+    "ours": ["method=ours"],
+    "bc": ["method=bc"],
+    "bc-published-paper": ["method=bc", "data.refine=paper"],
+}
+#: budget -> steps, evaluation and checkpoint interval, seeds per cell, dataset options, cells
+BUDGETS = {
+    "50k": {"steps": 50_000, "every": 2_000, "checkpoint": 5_000, "seeds": 5,
+            "datasets": ["door-human-v0", "rmrl-kitchen-partial"], "cells": list(CELLS)},
+    "500k": {"steps": 500_000, "every": 10_000, "checkpoint": 10_000, "seeds": 3,
+             "datasets": ["door-human-v0"], "cells": ["iql-ours-none", "ours"]},
+}
+#: recipe entries that decide what a run learns and how it is evaluated (a run elsewhere matches a cell on these)
+TRAINING = ("data.name", "data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints", "rm",
+            "method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau",
+            "trainer.normalize_obs", "eval.env", "eval.env_kwargs", "eval.max_steps", "eval.every",
+            "eval.episodes", "eval.score", "eval.reward", "seed")
+
+
+def run_name(dataset: str, cell: str, budget: str) -> str:
+    return f"{dataset}-{cell}" + ("" if budget == "50k" else f"-{budget}")
+
+
+def plan(budgets=None, datasets=None, cells=None, seeds=None, out: str = "runs") -> list[dict]:
+    """Every run of the study: budget, dataset, cell, seed, name and its overrides."""
+    choices = read_choices(CHOICES)
+    runs = []
+    for budget, b in BUDGETS.items():
+        if budgets and budget not in budgets:
+            continue
+        for dataset in b["datasets"]:
+            if datasets and dataset not in datasets:
+                continue
+            for seed in seeds or first_free_seeds(dataset, choices, b["seeds"]):
+                for cell in b["cells"]:
+                    if cells and cell not in cells:
+                        continue
+                    name = run_name(dataset, cell, budget)
+                    runs.append({"budget": budget, "dataset": dataset, "cell": cell, "seed": seed, "name": name,
+                                 "overrides": [f"dataset={dataset}", *CELLS[cell], f"name={name}", f"seed={seed}",
+                                               f"out={out}", f"trainer.steps={b['steps']}", f"eval.every={b['every']}",
+                                               f"trainer.checkpoint_every={b['checkpoint']}"]})
+    return runs
+
+
+def finished(run_dir: Path, steps: int) -> bool:
+    csv = run_dir / "eval.csv"
+    if not csv.is_file():
+        return False
+    done = read_eval_csv(csv)["step"]
+    return len(done) > 0 and int(done[-1]) >= steps
+
+
+def run(args) -> None:
+    todo = [p for p in plan(args.budget, args.datasets, args.cells, args.seeds, args.out)
+            if not finished(STUDY / "runs" / f"{p['name']}-seed{p['seed']}", BUDGETS[p["budget"]]["steps"])]
+    print(f"{len(todo)} runs to do or continue", file=sys.stderr)
+    run_grid([(None, [*p["overrides"], *args.override]) for p in todo], args.jobs)
+
+
+def collect(args) -> None:
+    """Copies every finished run under ``args.dirs`` that matches a cell exactly to ``runs/``."""
+    wanted = {}
+    for p in plan():
+        recipe = load_recipe(None, p["overrides"]).to_dict()
+        wanted.setdefault((p["dataset"], p["seed"], int(recipe["trainer"]["steps"])), []).append((p, recipe))
+    (STUDY / "runs").mkdir(parents=True, exist_ok=True)
+    for run_dir in find_run_dirs(args.dirs):
+        raw = upgrade_recipe(read_recipe(run_dir))
+        key = ((raw.get("data") or {}).get("name"), raw.get("seed"), int((raw.get("trainer") or {}).get("steps", 0)))
+        match = next((p for p, recipe in wanted.get(key, []) if not recipe_changes(raw, recipe, keys=TRAINING)), None)
+        if match is None or not finished(run_dir, key[2]):
+            continue
+        dest = STUDY / "runs" / f"{match['name']}-seed{match['seed']}"
+        if dest.resolve() == run_dir.resolve():
+            continue
+        dest.mkdir(exist_ok=True)
+        for name in ("eval.csv", "recipe.yaml", "refine_report.json", "machine_seconds"):
+            if (run_dir / name).is_file():
+                shutil.copyfile(run_dir / name, dest / name)
+        where = run_dir.resolve()
+        write_atomic(dest / "collected_from", f"{where.relative_to(ROOT) if where.is_relative_to(ROOT) else where}\n")
+        if (run_dir / "checkpoint.pt").is_file():
+            elapsed = load_checkpoint(run_dir / "checkpoint.pt").get("elapsed_seconds")
+            if elapsed is not None:
+                write_atomic(dest / "machine_seconds", f"{float(elapsed):.1f}\n")
+        print(f"{run_dir} -> {dest.relative_to(ROOT)}", file=sys.stderr)
+
+
+def _cell(values) -> str:
+    values = np.asarray(values, dtype=float)
+    return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
+
+
+def _ci(e) -> str:
+    return f"{e.value:.1f} [{e.lo:.1f}, {e.hi:.1f}]"
+
+
+def report(args) -> None:
+    runs, left_out = leave_out_chosen(load_runs([STUDY / "runs"]), read_choices(CHOICES))
+    summary, groups = [], {}
+    for r in runs:
+        algorithm, hparams, refine = run_identity(r.recipe)
+        budget = f"{r.final_step // 1000}k"
+        summary.append({"dataset": r.dataset, "source": r.origin, "algorithm": algorithm, "refine": refine,
+                        "hparams": hparams, "seed": r.seed, "steps": r.final_step,
+                        "eval_every": int(r.recipe["eval"]["every"]), "eval_episodes": r.episodes,
+                        "final_score": float(r.evals["score"][-1]), "mean_score": float(r.evals["score"].mean()),
+                        "final_success": float(r.evals["success_rate"][-1]),
+                        "final_events": float(r.evals["events_mean"][-1]), "run": r.path.name})
+        shown = r.dataset + (" (generated)" if r.origin == "generated" else "")
+        groups.setdefault((shown, budget, algorithm, hparams, refine), []).append(r)
+    summary.sort(key=lambda s: (s["dataset"], s["steps"], s["algorithm"], s["hparams"], s["refine"], s["seed"]))
+    write_atomic(STUDY / "summary.json", json.dumps(summary, indent=1) + "\n")
+    lines = ["# What the refinement is worth, apart from the settings", "",
+             "Generated by `python benchmarks/refinement_ablation.py report` from `runs/` (see its docstring for the "
+             "cells and the commands). Score: D4RL-normalised return of the final evaluation (10 episodes); IQM "
+             f"[95% CI]: rliable's interquartile mean over seeds with a stratified-bootstrap CI ({args.reps} "
+             "resamples). Seeds: per dataset the first that no choice of settings used "
+             "(`benchmarks/results/choices.json`). Datasets marked (generated) are stand-ins made on this machine.", ""]
+    panels = {}
+    for (shown, budget) in sorted({k[:2] for k in groups}, key=lambda k: (k[0], int(k[1][:-1]))):
+        here = {k: v for k, v in groups.items() if k[:2] == (shown, budget)}
+        lines += [f"## {shown}, {budget} steps", "",
+                  "| algorithm | settings | data | seeds | final score | IQM [95% CI] | mean score over evaluations |",
+                  "|---|---|---|---|---:|---:|---:|"]
+        for (_, _, algorithm, hparams, refine), members in sorted(here.items(), key=lambda kv: kv[0][2:]):
+            finals = [r.final_value for r in members]
+            lines.append(f"| {algorithm} | {hparams} | {refine} | {', '.join(str(r.seed) for r in members)} | "
+                         f"{_cell(finals)} | {_ci(cell_iqm(finals, args.reps))} | "
+                         f"{_cell([np.mean(r.values) for r in members])} |")
+        lines += ["", "P(refined > raw): the chance that a run on the refined data scores above a run on the raw "
+                  "data (ties count half), same algorithm and settings; 95% CI over the runs of both.", "",
+                  "| algorithm | settings | P(refined > raw) [95% CI] | seeds (refined / raw) |", "|---|---|---:|---|"]
+        for (_, _, algorithm, hparams, refine), refined in sorted(here.items(), key=lambda kv: kv[0][2:]):
+            raw = here.get((shown, budget, algorithm, hparams, "none"))
+            if refine != "paper" or not raw:
+                continue
+            p = probability_of_improvement([r.final_value for r in refined], [r.final_value for r in raw], args.reps)
+            lines.append(f"| {algorithm} | {hparams} | {p.value:.2f} [{p.lo:.2f}, {p.hi:.2f}] | "
+                         f"{len(refined)} / {len(raw)} |")
+        lines.append("")
+        panels.setdefault(budget, []).extend(
+            Group(shown, display_label(*k[2:]), members) for k, members in here.items())
+    for budget, gs in panels.items():
+        plot_learning_curves(gs, STUDY / f"curves_{budget}.png")
+        lines += [f"![learning curves, {budget} steps](curves_{budget}.png)", ""]
+    missing = [f"{p['name']}-seed{p['seed']}" for p in plan()
+               if not finished(STUDY / "runs" / f"{p['name']}-seed{p['seed']}", BUDGETS[p["budget"]]["steps"])]
+    if missing:
+        lines += ["## Runs not done yet", "", f"{len(missing)} of {len(plan())} planned runs: "
+                  + ", ".join(missing), ""]
+    if left_out:
+        lines += ["## Runs left out", "", *(f"- {line}" for line in left_out), ""]
+    if (STUDY / "findings.md").is_file():
+        lines += ["## Findings", "", "What the numbers say: [findings.md](findings.md).", ""]
+    write_atomic(STUDY / "results.md", "\n".join(lines))
+    print("\n".join(lines))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="train the cells not yet in runs/ (resumable)")
+    r.add_argument("--out", default="runs", help="run directories (not committed)")
+    r.add_argument("--jobs", type=int, default=2)
+    r.add_argument("--budget", nargs="+", choices=list(BUDGETS), help="only these budgets (default: all)")
+    r.add_argument("--datasets", nargs="+", help="only these dataset options")
+    r.add_argument("--cells", nargs="+", choices=list(CELLS), help="only these cells")
+    r.add_argument("--seeds", nargs="+", type=int, help="these seeds (default: the first no choice used)")
+    r.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
+                   help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
+    c = sub.add_parser("collect", help="copy finished runs that match a cell exactly into runs/")
+    c.add_argument("dirs", nargs="+", help="run directories or folders holding them")
+    rep = sub.add_parser("report", help="summary.json, results.md and the curves from runs/")
+    rep.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples (default {REPS})")
+    args = p.parse_args()
+    {"run": run, "collect": collect, "report": report}[args.command](args)
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        raise SystemExit(main())
+    except RMError as err:
+        raise SystemExit(f"{Path(__file__).name}: error: {err}")
