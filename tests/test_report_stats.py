@@ -13,6 +13,7 @@ import yaml
 
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.report import group_runs, load_runs
+from rm_torchrl.report.choices import first_free_seeds, read_choices
 from rm_torchrl.report.stats import REPS, _rliable, aggregate, improvement, iqm
 from test_report import PNG_MAGIC, table_rows, write_run
 
@@ -24,10 +25,17 @@ ROOT = Path(__file__).resolve().parent.parent
 KEYS = {"metric", "confidence", "reps", "cells", "overall", "probability_of_improvement"}
 
 
-def runs(root: Path, dataset: str, method: str, finals, score: str = "door", step: int = 6000) -> None:
-    """A run per seed 0, 1, ... of ``method`` on ``dataset``, its last evaluation (at ``step``) ``finals[seed]``."""
+def free_seeds(dataset: str, count: int) -> list[int]:
+    """The seeds the benchmark scripts report on ``dataset``: the first ``count`` that no choice of settings used
+    (``benchmarks/results/choices.json``; their reports leave the others out)."""
+    return first_free_seeds(dataset, read_choices(ROOT / "benchmarks" / "results" / "choices.json"), count)
+
+
+def runs(root: Path, dataset: str, method: str, finals, score: str = "door", step: int = 6000, seeds=None) -> None:
+    """A run per seed (``seeds``, default 0, 1, ...) of ``method`` on ``dataset``, its last evaluation (at ``step``)
+    ``finals[k]``, in the layout before ``data.refine`` named the treatment (``write_run``'s)."""
     name = dataset if method == "ours" else f"{dataset}-{method}"
-    for seed, value in enumerate(finals):
+    for seed, value in zip(seeds or range(len(finals)), finals):
         write_run(root, name, seed, method, method == "ours", score, {2000: 0.0, step: float(value)})
 
 
@@ -204,24 +212,42 @@ def test_demo_accepts_the_files_its_report_writes(tmp_path):
 
 
 def test_table1_benchmark_report(tmp_path):
-    """``benchmarks/table1.py report`` on its own layout: the IQM column, the aggregate section and its files."""
+    """``benchmarks/table1.py report`` on its own layout: the IQM column, the aggregate section and its files.
+    Runs on a seed a choice of settings used, and BC runs from before CORL's BC (no method.bc: the Gaussian
+    likelihood), are left out, each named under "Runs left out"."""
     results = tmp_path / "results"
+    *seeds, other = free_seeds("door-human-v0", 4)
     for method, finals in (("ours", [30, 40, 50]), ("iql", [1, 2, 3]), ("bc", [0, 1, 2])):
-        runs(results / "runs", "door-human-v0", method, finals, step=50_000)
-    runs(results / "runs", "door-human-v0", "cql", [60, 70, 80], step=10_000)
+        runs(results / "runs", "door-human-v0", method, finals, step=50_000, seeds=seeds)
+    for seed in seeds:  # CORL's BC, as today's recipe writes it
+        recipe = results / "runs" / f"door-human-v0-bc-seed{seed}" / "recipe.yaml"
+        written = yaml.safe_load(recipe.read_text())
+        recipe.write_text(yaml.safe_dump({**written, "data": {**written["data"], "refine": "none"},
+                                          "method": {"name": "bc", "hparams": "published", "bc": {"loss": "mse"}}},
+                                         sort_keys=False))
+    runs(results / "runs", "door-human-v0", "bc", [99], step=50_000, seeds=[other])  # the likelihood BC of before
+    runs(results / "runs", "door-human-v0", "iql", [99], step=50_000, seeds=[0])  # seed 0 chose ours' settings
+    runs(results / "runs", "door-human-v0", "cql", [60, 70, 80], step=10_000, seeds=seeds)
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "table1.py"), "report", "--out",
                            str(tmp_path / "none"), "--results", str(results), "--reps", "300"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    agg = json.loads((results / "aggregates.json").read_text())
+    every = json.loads((results / "aggregates.json").read_text())
+    assert set(every) == {"d4rl"}  # door-human-v0 is D4RL's file; generated stand-ins are aggregated apart
+    agg = every["d4rl"]
     assert agg["reps"] == 300 and {o["method"] for o in agg["overall"]} == {"ours", "iql", "bc"}
     assert by(agg["probability_of_improvement"], "y")["iql"]["p"] == 1.0
     text = (results / "results.md").read_text()
-    assert "final score IQM [95% CI]" in text
+    assert "final score IQM [95% CI]" in text and "99" not in text.split("## Runs left out")[0]
     assert "| door-human-v0 | Ours | 50k × 3 | 40.0 ± 10.0 | 40.0 [30.0, 50.0] |" in text
-    assert "## Aggregate over datasets" in text and "| Ours > IQL | 1.00 [1.00, 1.00] |" in text
+    assert "| door-human-v0 | BC | 50k × 3 | 1.0 ± 1.0 |" in text
+    assert "## Aggregate over the D4RL data" in text and "| Ours > IQL | 1.00 [1.00, 1.00] |" in text
     assert "- CQL on door-human-v0: 3 runs end at step 10,000, Ours there at 50,000" in text
-    assert (results / "performance_profile.png").read_bytes()[:8] == PNG_MAGIC
+    left_out = text.split("## Runs left out")[1].splitlines()
+    assert any(f"door-human-v0-bc-seed{other}" in line and "BC with the Gaussian likelihood" in line for line in left_out)
+    assert any("door-human-v0-iql-seed0" in line and "seed 0 of door-human-v0 was used to choose" in line
+               for line in left_out)
+    assert (results / "performance_profile_d4rl.png").read_bytes()[:8] == PNG_MAGIC
 
 
 def door_500k_report(out: Path, results: Path) -> None:
@@ -234,15 +260,19 @@ def test_door_500k_benchmark_report(tmp_path):
     """``benchmarks/door_500k.py report``: per-method table with IQM, best, last five, the hold check; unfinished runs out."""
     results = tmp_path / "results"
     curve = {step: 10.0 for step in range(10_000, 500_001, 10_000)}
-    for seed, late in enumerate((10.0, 8.0, 2.0)):  # the third seed falls to a fifth of its plateau at the end
+    seeds = free_seeds("door-human-v0", 3)
+    for seed, late in zip(seeds, (10.0, 8.0, 2.0)):  # the third seed falls to a fifth of its plateau at the end
         write_run(results / "runs", "door-human-v0-ours", seed, "ours", True, "door",
                   {**curve, **{s: late for s in range(460_000, 500_001, 10_000)}})
-    write_run(results / "runs", "door-human-v0-iql", 0, "iql", False, "door", {10_000: 1.0, 250_000: 2.0})
+    write_run(results / "runs", "door-human-v0-iql", seeds[0], "iql", False, "door", {10_000: 1.0, 250_000: 2.0})
+    chosen = write_run(results / "runs", "door-human-v0-iql", 0, "iql", False, "door", {500_000: 50.0})
+    assert 0 not in seeds  # seed 0 chose ours' settings on door-human-v0: its run is left out
     door_500k_report(tmp_path / "none", results)
     text = (results / "results.md").read_text()
     assert "| Ours | 3 | 6.7 ± 4.2 | 6.7 [2.0, 10.0] | 10.0 ± 0.0 | 6.7 ± 4.2 |" in text
     assert "| 10.0 ± 0.0 | 2 of 3 |" in text  # best five in a row, and the runs that kept half of it
-    assert "door-human-v0-iql-seed0: in progress (250,000 of 500,000 steps)" in text
+    assert f"door-human-v0-iql-seed{seeds[0]}: in progress (250,000 of 500,000 steps)" in text
+    assert f"{chosen.name}: seed 0 of door-human-v0 was used to choose" in text and "50.0" not in text
     assert "- IQL: 0 of 3 seeds" in text
     summary = json.loads((results / "summary.json").read_text())
     assert [s["holds"] for s in sorted(summary, key=lambda s: s["seed"])] == [True, True, False]
@@ -255,27 +285,28 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     """Arms (ours with ARMS' overrides) go to ``arms.md`` beside ours' default runs, also when stopped early, and
     stay out of the main table."""
     results = tmp_path / "results"
-    write_run(results / "runs", "door-human-v0-ours", 0, "ours", True, "door",
+    seed, other = free_seeds("door-human-v0", 2)  # the seeds the report takes ours' default runs from
+    write_run(results / "runs", "door-human-v0-ours", seed, "ours", True, "door",
               {**{s: 20.0 for s in range(10_000, 100_001, 10_000)}, **{s: 5.0 for s in range(110_000, 500_001, 10_000)}})
-    write_run(tmp_path / "out", "door-human-v0-lra3e-5", 0, "ours", True, "door",
+    write_run(tmp_path / "out", "door-human-v0-lra3e-5", seed, "ours", True, "door",
               {s: 15.0 if s <= 50_000 else 25.0 for s in range(5_000, 100_001, 5_000)})
-    old = write_run(results / "runs", "door-human-v0-ours", 1, "ours", True, "door",
+    old = write_run(results / "runs", "door-human-v0-ours", other, "ours", True, "door",
                     {s: 3.0 for s in range(10_000, 500_001, 10_000)})
     recipe = yaml.safe_load((old / "recipe.yaml").read_text())
     (old / "recipe.yaml").write_text(yaml.safe_dump({**recipe, "optim": {"lr_actor": 3e-4}}))
     door_500k_report(tmp_path / "out", results)
     arms = (results / "arms.md").read_text()
-    assert "| ours (defaults) | 0 | 500,000 | 20.0 | 5.0 | 20.0 | 5.0 | 5.0 |" in arms
-    assert "| 0 | 100,000 | 20.0 | nan | 25.0 | 25.0 | 25.0 |" in arms  # 10 evaluations at 15, 10 at 25
-    assert (results / "arms" / "runs" / "door-human-v0-lra3e-5-seed0" / "eval.csv").is_file()
+    assert f"| ours (defaults) | {seed} | 500,000 | 20.0 | 5.0 | 20.0 | 5.0 | 5.0 |" in arms
+    assert f"| {seed} | 100,000 | 20.0 | nan | 25.0 | 25.0 | 25.0 |" in arms  # 10 evaluations at 15, 10 at 25
+    assert (results / "arms" / "runs" / f"door-human-v0-lra3e-5-seed{seed}" / "eval.csv").is_file()
     assert (results / "arms" / "curves.png").read_bytes()[:8] == PNG_MAGIC
     text = (results / "results.md").read_text()
     assert "| Ours | 1 |" in text  # neither the arm nor the run of an earlier default is one of ours' default runs
-    assert "door-human-v0-ours-seed1: trained with an earlier default (optim.lr_actor: 0.0003 -> 3e-05)" in text
+    assert f"door-human-v0-ours-seed{other}: trained with an earlier default (optim.lr_actor: 0.0003 -> 3e-05)" in text
     (results / "before-fix").mkdir()
     old.rename(results / "before-fix" / old.name)
     door_500k_report(tmp_path / "out", results)
-    assert "| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | 1 | 500,000 | 3.0 | 3.0 |" in (
+    assert f"| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | {other} | 500,000 | 3.0 | 3.0 |" in (
         results / "arms.md").read_text()
 
 
@@ -284,13 +315,14 @@ def door_500k(*args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=300)
 
 
-def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, stop: int = 500_000) -> Path:
+def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, stop: int = 500_000,
+            seed: int = 0) -> Path:
     """A committed arm run whose recipe is what the trainer resolves for ours with ``overrides`` at 500k."""
     from rm_torchrl.train.recipe import load_recipe
 
-    run = results / "arms" / "runs" / f"door-human-v0-{arm}-seed0"
+    run = results / "arms" / "runs" / f"door-human-v0-{arm}-seed{seed}"
     run.mkdir(parents=True)
-    recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "trainer.steps=500000",
+    recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "trainer.steps=500000", f"seed={seed}",
                                 f"name=door-human-v0-{arm}", f"eval.every={every}", *overrides]).to_dict()
     (run / "recipe.yaml").write_text(yaml.safe_dump(recipe, sort_keys=False))
     (run / "eval.csv").write_text("step,return_mean,return_std,score,success_rate,events_mean,episodes,reward\n" + "".join(
@@ -302,23 +334,25 @@ def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, s
 def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     """``adopt``: the lr arm (today's default) becomes ours' seed-0 run, evaluations kept at every 10k; an arm that
     is not the default, one stopped early, or a recipe lacking a setting is refused in one line; a seed ours has
-    is left alone."""
+    is left alone. The arm runs on a seed the report takes ours' default runs from (no choice used it)."""
     results = tmp_path / "results"
-    arm_run(results, "lra3e-5", ["optim.lr_actor=3.0e-5"])
-    done = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(results))
+    seed = free_seeds("door-human-v0", 1)[0]
+    arm_run(results, "lra3e-5", ["optim.lr_actor=3.0e-5"], seed=seed)
+    done = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(results))
     assert done.returncode == 0, done.stderr
     assert "100 evaluations" in done.stderr and "50 of 100" in done.stderr
-    dest = results / "runs" / "door-human-v0-ours-seed0"
+    dest = results / "runs" / f"door-human-v0-ours-seed{seed}"
     rows = (dest / "eval.csv").read_text().splitlines()
     assert len(rows) == 51 and rows[1].startswith("10000,") and rows[-1].startswith("500000,500.0,1.0,50.0,")
     recipe = yaml.safe_load((dest / "recipe.yaml").read_text())
     assert recipe["name"] == "door-human-v0-ours" and recipe["eval"]["every"] == 10_000
     assert recipe["optim"]["lr_actor"] == 3.0e-5
+    assert (recipe["method"]["name"], recipe["method"]["hparams"], recipe["data"]["refine"]) == ("iql", "ours", "paper")
     adopted = json.loads((dest / "adopted.json").read_text())
-    assert adopted["from"] == "arms/runs/door-human-v0-lra3e-5-seed0" and adopted["evaluated_every"] == 5_000
+    assert adopted["from"] == f"arms/runs/door-human-v0-lra3e-5-seed{seed}" and adopted["evaluated_every"] == 5_000
     assert (dest / "machine_seconds").read_text() == "7000.0\n"
-    again = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(results))
-    assert again.returncode == 0 and "door-human-v0-ours-seed0 exists; nothing adopted" in again.stderr
+    again = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(results))
+    assert again.returncode == 0 and f"door-human-v0-ours-seed{seed} exists; nothing adopted" in again.stderr
     door_500k_report(tmp_path / "none", results)
     assert "| Ours | 1 | 50.0 | 50.0 [50.0, 50.0] | 50.0 | 48.0 |" in (results / "results.md").read_text()
 
@@ -326,12 +360,12 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
             ("wdpi1e-2", ["optim.weight_decay_pi=1.0e-2"], 500_000, "optim.weight_decay_pi: 0.01 -> 0.001"),
             ("lra3e-5", ["optim.lr_actor=3.0e-5"], 100_000, "it stops at 100,000 of 500,000 steps")]:
         other = tmp_path / f"other-{arm}-{stop}"
-        arm_run(other, arm, overrides, stop=stop)
-        refused = door_500k("adopt", "--arms", arm, "--seeds", "0", "--results", str(other))
+        arm_run(other, arm, overrides, stop=stop, seed=seed)
+        refused = door_500k("adopt", "--arms", arm, "--seeds", str(seed), "--results", str(other))
         assert refused.returncode != 0 and why in refused.stderr and "Traceback" not in refused.stderr
         assert len(refused.stderr.strip().splitlines()) == 1 and not (other / "runs").exists()
     legacy = tmp_path / "legacy"
-    write_run(legacy / "arms" / "runs", "door-human-v0-lra3e-5", 0, "ours", True, "door",
+    write_run(legacy / "arms" / "runs", "door-human-v0-lra3e-5", seed, "ours", True, "door",
               {s: 1.0 for s in range(10_000, 500_001, 10_000)})
-    refused = door_500k("adopt", "--arms", "lra3e-5", "--seeds", "0", "--results", str(legacy))
+    refused = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(legacy))
     assert refused.returncode != 0 and "optim.lr_actor: (absent) -> 3e-05" in refused.stderr
