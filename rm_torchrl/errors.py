@@ -19,6 +19,19 @@ def read_yaml(path, what: str):
         raise RMError(f"{what} {path} is not valid YAML: {yaml_problem(err)}") from None
 
 
+def read_json(path, what: str = ""):
+    """The parsed JSON file at ``path``, or a one-line RMError naming it (``what``: "choices file")."""
+    import json
+
+    named = f"{what} {path}" if what else str(path)
+    try:
+        return json.loads(open(path, "rb").read())
+    except OSError as err:
+        raise RMError(f"cannot read {named}: {err.strerror}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise RMError(f"{named} is not valid JSON: {err}") from None
+
+
 def yaml_problem(err) -> str:
     """A one-line description of a PyYAML error: what is wrong and where."""
     problem = getattr(err, "problem", None) or str(err).splitlines()[0]

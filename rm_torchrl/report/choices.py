@@ -13,12 +13,11 @@ a JSON list of objects with ``what``, ``options``, ``dataset``, ``seeds``, ``ste
 """
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Iterable
 
-from rm_torchrl.errors import RMError
+from rm_torchrl.errors import RMError, read_json
 from rm_torchrl.report.runs import Run, dataset_label
 
 KEYS = ("what", "options", "dataset", "seeds", "steps", "criterion", "chosen")
@@ -27,12 +26,7 @@ KEYS = ("what", "options", "dataset", "seeds", "steps", "criterion", "chosen")
 def read_choices(path: str | os.PathLike) -> list[dict]:
     """The checked list of choices in ``path``."""
     path = Path(path)
-    try:
-        choices = json.loads(path.read_text())
-    except OSError as err:
-        raise RMError(f"cannot read the choices file {path}: {err.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise RMError(f"{path} is not valid JSON: {err}") from None
+    choices = read_json(path, "choices file")
     if not isinstance(choices, list):
         raise RMError(f"{path} must hold a JSON list of choices, got {type(choices).__name__}")
     for i, choice in enumerate(choices):

@@ -34,7 +34,7 @@ from typing import Iterable
 
 import numpy as np
 
-from rm_torchrl.errors import RMError, read_yaml
+from rm_torchrl.errors import RMError, read_json, read_yaml
 from rm_torchrl.run_format import (DISPLAY, EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR,  # noqa: F401
                                    RECIPE_FILE, REFINE_FILE, REUSED, REWARD_COLUMN, STAGES, data_origin, display_label,
                                    run_identity, run_label)
@@ -312,12 +312,7 @@ def read_refine_report(run_dir: Path) -> dict | None:
     path = Path(run_dir) / REFINE_FILE
     if not path.is_file():
         return None
-    try:
-        report = json.loads(path.read_text())
-    except OSError as err:
-        raise RMError(f"cannot read {path}: {err.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise RMError(f"{path} is not valid JSON: {err}") from None
+    report = read_json(path)
     stages = report.get("stages") if isinstance(report, dict) else None
     if not isinstance(stages, dict) or any(not isinstance(stages.get(s), int) for s in STAGES):
         raise RMError(f"{path}: 'stages' must map each of {list(STAGES)} to a number of transitions")
