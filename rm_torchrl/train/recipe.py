@@ -224,6 +224,9 @@ def validate(recipe: Recipe) -> None:
     for key, choices in CHOICES.items():
         if _lookup(recipe, key) not in choices:
             raise RMError(f"recipe: {key} must be one of {list(choices)}, got {_lookup(recipe, key)!r}")
+    if recipe.method.hparams == "ours" and recipe.method.name != "iql":
+        raise RMError(f"recipe: method.hparams=ours names ours' IQL settings (method=ours); {recipe.method.name} has only "
+                      "its published ones")
     if not recipe.data.source:
         raise RMError("recipe: data.source is required")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._=+-]*", recipe.name) or ".." in recipe.name:
