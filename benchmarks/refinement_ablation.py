@@ -154,13 +154,14 @@ def report(args) -> None:
     for r in runs:
         algorithm, hparams, refine = run_identity(r.recipe)
         budget = f"{r.final_step // 1000}k"
-        summary.append({"dataset": r.dataset, "source": r.origin, "algorithm": algorithm, "refine": refine,
+        dataset = r.dataset.removeprefix("rmrl-") if r.origin == "generated" else r.dataset  # Table 1's row name
+        summary.append({"dataset": dataset, "source": r.origin, "algorithm": algorithm, "refine": refine,
                         "hparams": hparams, "seed": r.seed, "steps": r.final_step,
                         "eval_every": int(r.recipe["eval"]["every"]), "eval_episodes": r.episodes,
                         "final_score": float(r.evals["score"][-1]), "mean_score": float(r.evals["score"].mean()),
                         "final_success": float(r.evals["success_rate"][-1]),
                         "final_events": float(r.evals["events_mean"][-1]), "run": r.path.name})
-        shown = r.dataset + (" (generated)" if r.origin == "generated" else "")
+        shown = dataset + (" (generated)" if r.origin == "generated" else "")
         groups.setdefault((shown, budget, algorithm, hparams, refine), []).append(r)
     summary.sort(key=lambda s: (s["dataset"], s["steps"], s["algorithm"], s["hparams"], s["refine"], s["seed"]))
     write_atomic(STUDY / "summary.json", json.dumps(summary, indent=1) + "\n")
