@@ -21,6 +21,7 @@ copies it to ``runs/`` with its evaluations at every 10,000 steps.
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import json
 import shutil
@@ -42,6 +43,7 @@ from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_c
 from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
 from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
 from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
+from rm_torchrl.run_format import run_identity, run_label, upgrade_recipe  # noqa: E402
 from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
 from rm_torchrl.train.recipe import load_recipe  # noqa: E402
 from rm_torchrl.train.rundir import recipe_changes  # noqa: E402
@@ -116,9 +118,10 @@ def differences(run, strict: bool = False) -> list[str]:
     ``rmrl train dataset=DATASET method=M trainer.steps=STEPS`` gives now. Keys a recipe lacks are skipped
     (runs from before an option existed) unless ``strict``: then they count, except where today's value is
     off (``False``, empty): an option added since, whose default is what the run did."""
-    now = load_recipe(None, [f"dataset={DATASET}", f"method={run.recipe['method']['name']}",
-                             f"trainer.steps={STEPS}"]).to_dict()
-    return recipe_changes(run.recipe, now, TRAINING, added=(lambda v: not _off(v)) if strict else (lambda v: False))
+    option = run_label(*run_identity(run.recipe))  # ours, iql, bc: the method option the run was
+    now = load_recipe(None, [f"dataset={DATASET}", f"method={option}", f"trainer.steps={STEPS}"]).to_dict()
+    return recipe_changes(upgrade_recipe(copy.deepcopy(run.recipe)), now, TRAINING,
+                          added=(lambda v: not _off(v)) if strict else (lambda v: False))
 
 
 def adopt(args) -> None:

@@ -185,7 +185,7 @@ def describe(runs: Sequence[Run], groups: Sequence[Group], aggregates: Aggregate
     what[-1] += f", from {' and '.join(conventions)} rewards" + (
         " (D4RL's reward function; for Adroit v1 envs, their dense reward with D4RL's sign of the distance term)"
         if "d4rl" in conventions else " (the evaluation env's own reward)")
-    refined_baselines = any(g.method.endswith(("(refined)", "(refined, reuse)")) for g in groups)
+    refined_baselines = any(g.method.endswith(("refined)", "refined, reuse)")) for g in groups)
     reuse = (f" {OURS_REUSE} = {OURS} on the dataset refined with the reuse stage (beyond the paper: the "
              "sub-trajectories the splice abandons are brought back)." if any(g.method == OURS_REUSE for g in groups)
              else "")
@@ -193,8 +193,10 @@ def describe(runs: Sequence[Run], groups: Sequence[Group], aggregates: Aggregate
                  f"{' and '.join(what)}; "
                  "the best mean of each dataset is in **bold**. "
                  + ("" if aggregates is None else iqm_note(aggregates) + " ")
-                 + "Ours = IQL on the RM-refined dataset; the other columns train on the raw dataset"
-                 + (" unless marked (refined)." if refined_baselines else ".") + reuse)
+                 + "Ours = IQL with ours' settings on the RM-refined dataset; the other columns are their "
+                 "algorithm with its authors' published settings on the raw dataset"
+                 + (" unless their label says otherwise (ours' settings, refined)." if refined_baselines or any(
+                     "ours' settings" in g.method for g in groups) else ".") + reuse)
     return lines
 
 
