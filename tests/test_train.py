@@ -335,6 +335,7 @@ def test_existing_run_dir_is_refused(tmp_path, dataset):
         ("data.reuse=true", r"^recipe: unknown key data.reuse; allowed under data: \[.*'refine'"),
         (("data.refine=reuse", "data.events="), r"^recipe: data.events is required when data.refine is reuse$"),
         ("method.hparams=mine", r"^recipe: method.hparams must be one of \['published', 'ours'\], got 'mine'$"),
+        (("method.name=bc", "method.hparams=ours"), r"^recipe: method.hparams=ours names ours' IQL settings .*; bc has"),
         ("method.bc.loss=l1", r"^recipe: method.bc.loss must be one of \['mse', 'nll'\], got 'l1'$"),
         ("method.name=ours-v2", r"^recipe: method.name must be one of \['iql', 'bc', 'cql', 'bcq'\], got 'ours-v2'$"),
         ("trainer.device=tpu", "trainer.device must be auto | cpu | cuda | cuda:N"),

@@ -16,7 +16,6 @@ from typing import List, Protocol
 METHOD_SECTIONS = {"iql": "iql", "bc": "bc", "cql": "cql", "bcq": "bcq"}
 ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
 BC_LOSSES = ("mse", "nll")  # method.bc.loss
-  # network.actor: see rm_torchrl.methods.networks.make_actor
 
 
 @dataclass
