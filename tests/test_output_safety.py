@@ -16,6 +16,7 @@ from pathlib import Path
 import minari
 import numpy as np
 import pytest
+import torch
 from tensordict import TensorDict
 
 import rm_torchrl.cli.refine  # noqa: F401  (imported once here, not in every forked run)
@@ -60,6 +61,9 @@ def run_forked(argvs: list[list], logs: Path, env: dict | None = None) -> list[t
         if pid == 0:  # the child: never returns into pytest
             code = 1
             try:
+                # one thread: GNU OpenMP's pool does not survive a fork, and a child that starts a parallel region
+                # after the parent ran one waits at its barrier for threads it does not have
+                torch.set_num_threads(1)
                 os.close(release_w)
                 os.environ.update(env or {})
                 sys.stdout = sys.stderr = open(logs / f"{k}.log", "w", buffering=1)
