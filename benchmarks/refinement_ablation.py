@@ -198,10 +198,11 @@ def report(args) -> None:
     for budget, gs in panels.items():
         plot_learning_curves(gs, STUDY / f"curves_{budget}.png")
         lines += [f"![learning curves, {budget} steps](curves_{budget}.png)", ""]
-    missing = [f"{p['name']}-seed{p['seed']}" for p in plan()
+    planned = plan()
+    missing = [f"{p['name']}-seed{p['seed']}" for p in planned
                if not finished(STUDY / "runs" / f"{p['name']}-seed{p['seed']}", BUDGETS[p["budget"]]["steps"])]
     if missing:
-        lines += ["## Runs not done yet", "", f"{len(missing)} of {len(plan())} planned runs: "
+        lines += ["## Runs not done yet", "", f"{len(missing)} of {len(planned)} planned runs: "
                   + ", ".join(missing), ""]
     if left_out:
         lines += ["## Runs left out", "", *(f"- {line}" for line in left_out), ""]

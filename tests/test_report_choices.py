@@ -66,7 +66,7 @@ def test_the_committed_record_is_complete():
     assert all(isinstance(c["steps"], int) and c["seeds"] for c in choices)
 
 
-@pytest.mark.parametrize("study", ["table1", "refinement-ablation"])
+@pytest.mark.parametrize("study", ["table1", "refinement-ablation", "door-human-v0-500k"])
 def test_no_reported_run_shares_a_dataset_and_seed_with_a_choice(study):
     """The protocol (benchmarks/PROTOCOL.md) on what is committed: every run a summary.json reports."""
     summary = RESULTS / study / "summary.json"
@@ -74,7 +74,7 @@ def test_no_reported_run_shares_a_dataset_and_seed_with_a_choice(study):
         pytest.skip(f"{study} has no summary yet")
     pairs = used_pairs(read_choices(RESULTS / "choices.json"))
     reported = json.loads(summary.read_text())
-    assert reported
+    assert reported or study == "door-human-v0-500k"  # its runs are all on seeds a choice used: none reported
     for row in reported:
         recipe = yaml.safe_load((RESULTS / study / "runs" / row["run"] / "recipe.yaml").read_text())
         assert (dataset_label(recipe), row["seed"]) not in pairs, row["run"]
