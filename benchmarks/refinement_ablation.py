@@ -219,7 +219,8 @@ def main() -> int:
     r.add_argument("--out", default="runs", help="run directories (not committed)")
     r.add_argument("--jobs", type=int, default=2)
     r.add_argument("--budget", nargs="+", choices=list(BUDGETS), help="only these budgets (default: all)")
-    r.add_argument("--datasets", nargs="+", help="only these dataset options")
+    r.add_argument("--datasets", nargs="+", choices=sorted({d for b in BUDGETS.values() for d in b["datasets"]}),
+                   help="only these dataset options")
     r.add_argument("--cells", nargs="+", choices=list(CELLS), help="only these cells")
     r.add_argument("--seeds", nargs="+", type=int, help="these seeds (default: the first no choice used)")
     r.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",

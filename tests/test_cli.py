@@ -144,7 +144,11 @@ def test_refine_door_human_from_recipe(capsys, tmp_path, monkeypatch):
     assert code == 0, err
     report = check_door_human_output(out)
     assert report["episode_ends"] == "terminals"
-    assert Path(report["dataset"]).resolve() == DOOR.resolve()
+    assert report["dataset"] == "embedded:door-human-v0.hdf5"
+    relative = tmp_path / "relative-out"  # the README's spelling, from a directory without recipes/ in it
+    code, _, err = run(capsys, "refine", "--config", "recipes/refine/door-human.yaml", "--out", relative)
+    assert code == 0, err
+    assert check_door_human_output(relative) == report
 
 
 @needs_kitchen

@@ -593,3 +593,18 @@ def test_observations_torch_cannot_hold_are_refused_naming_the_dtype(tmp_path, d
     with pytest.raises(RMError, match=rf"observations must hold integers or floats \(float64 at most\), got dtype "
                                       rf"{re.escape(str(np.dtype(dtype)))}"):
         load_d4rl_hdf5(path)
+
+
+def test_load_dataset_takes_the_packages_path_and_the_embedded_spelling():
+    """``load_dataset(DOOR_HUMAN_V0)`` (a Path) and ``embedded:door-human-v0.hdf5`` read the shipped file; any other
+    type is refused in one line."""
+    from rm_torchrl.data.sources import load_dataset
+
+    by_path = load_dataset(DOOR_HUMAN_V0, "terminals")
+    by_name = load_dataset("embedded:door-human-v0.hdf5", "terminals")
+    assert by_path.batch_size == by_name.batch_size == (6704,)
+    assert (by_path["observation"] == by_name["observation"]).all()
+    with pytest.raises(RMError, match="a dataset source is a path or a string, got int"):
+        load_dataset(3)
+    with pytest.raises(RMError, match="no embedded data file 'door.hdf5'"):
+        load_dataset("embedded:door.hdf5")

@@ -6,13 +6,15 @@ import sys
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.d4rl_to_minari import IMPORT_METADATA_KEY, import_d4rl
+from rm_torchrl.data.embedded import expand_embedded
 
 
 def add_arguments(p) -> None:
     """The flags of ``rmrl import-d4rl`` (for ``cli/main.py``)."""
     from rm_torchrl.data.d4rl import EPISODE_ENDS
 
-    p.add_argument("file", metavar="FILE", help="a D4RL .hdf5 file (observations, actions, rewards, terminals, timeouts)")
+    p.add_argument("file", metavar="FILE", help="a D4RL .hdf5 file (observations, actions, rewards, terminals, timeouts), or "
+                        "embedded:door-human-v0.hdf5 for the one shipped in the package")
     p.add_argument("--out-name", required=True, metavar="NAME",
                    help="Minari dataset id to write, e.g. d4rl/door-human-v0 (namespace/name-v<N>)")
     p.add_argument("--episode-ends", choices=EPISODE_ENDS, default="auto",
@@ -36,7 +38,7 @@ def run(args) -> int:
         bar.update(written - bar.n)
 
     try:
-        dataset_id = import_d4rl(args.file, args.out_name, episode_ends=args.episode_ends, env_id=args.env_id,
+        dataset_id = import_d4rl(expand_embedded(args.file), args.out_name, episode_ends=args.episode_ends, env_id=args.env_id,
                                  overwrite=args.overwrite, progress=progress)
     finally:
         if bar is not None:

@@ -43,10 +43,12 @@ class _TrainHelp(argparse.Action):
 
         from rm_torchrl.train.recipe import RECIPES
 
-        lines = []
+        lines = [f"Options come from the recipes folder {RECIPES} (a recipe file given first replaces "
+                 "train.yaml):"]
         for group in ("dataset", "method"):
             names = sorted(p.stem for p in (RECIPES / group).glob("*.yaml"))
-            lines += textwrap.wrap(f"{group}=NAME ({RECIPES / group}): {', '.join(names)}", width=100,
+            listed = ", ".join(names) or "none found: the install lacks its recipes (reinstall rm_torchrl)"
+            lines += textwrap.wrap(f"{group}=NAME ({RECIPES / group}): {listed}", width=100,
                                    subsequent_indent="  ", break_on_hyphens=False)
         parser.epilog = "\n".join(lines)
         parser.print_help()

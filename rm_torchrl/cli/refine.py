@@ -34,8 +34,21 @@ def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine", r
     return refined, RefineReport.from_pipeline(pipeline)
 
 
+def recipe_file(path: str) -> Path:
+    """``path`` as given, else (relative and absent) under the package's recipes folder's parent, so that
+    ``--config recipes/refine/door-human.yaml`` works from any directory and from an installed wheel."""
+    given = Path(path)
+    if given.exists() or given.is_absolute():
+        return given
+    from rm_torchrl.train.recipe import RECIPES
+
+    shipped = RECIPES.parent / given
+    return shipped if shipped.is_file() else given
+
+
 def load_recipe(path: str) -> dict:
     """A refine recipe; relative dataset and event-spec files are found from the recipe's folder."""
+    path = recipe_file(path)
     data = read_yaml(path, "recipe")
     if not isinstance(data, dict):
         raise RMError(f"recipe {path} must be a mapping of {sorted(RECIPE_KEYS)}")
@@ -54,7 +67,8 @@ def load_recipe(path: str) -> dict:
         raise RMError(f"recipe {path}: reuse must be true or false, got {data['reuse']!r}")
     for key in ("dataset", "events"):
         value = data.get(key)
-        if isinstance(value, str) and Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml"):
+        if (isinstance(value, str) and Path(value).suffix in (".hdf5", ".h5", ".yaml", ".yml")
+                and not value.startswith(("embedded:", "minari:"))):
             data[key] = os.path.normpath(base / value)
     return data
 

@@ -17,3 +17,9 @@ def embedded_file(name: str) -> Path:
         shipped = sorted(p.name for p in EMBEDDED_DIR.glob("*.hdf5"))
         raise RMError(f"no embedded data file {name!r}; the package ships {shipped}")
     return path
+
+
+def expand_embedded(source: str) -> str:
+    """``embedded:NAME`` as the packaged file's path (any other source unchanged): a spelling that works from any
+    directory and from an installed wheel."""
+    return str(embedded_file(source[len("embedded:"):])) if source.startswith("embedded:") else source

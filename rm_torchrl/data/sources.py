@@ -7,18 +7,25 @@ from pathlib import Path
 
 from tensordict import TensorDict
 
+from rm_torchrl.data.embedded import expand_embedded
 from rm_torchrl.errors import RMError
 
 
-def load_dataset(source: str, episode_ends: str = "auto") -> TensorDict:
-    """``*.hdf5`` / ``*.h5`` D4RL files, ``minari:<dataset id>`` or a local Minari dataset name.
+def load_dataset(source, episode_ends: str = "auto") -> TensorDict:
+    """``*.hdf5`` / ``*.h5`` D4RL files (a path or a ``str``), ``embedded:<file>`` (a file shipped in the package,
+    e.g. ``embedded:door-human-v0.hdf5``), ``minari:<dataset id>`` or a local Minari dataset name.
 
     Every floating-point entry (observations, actions, rewards) must be real, finite and within
     float32's range: one NaN would otherwise train to NaN networks that still report a score. Each
     loader checks its data as read (``require_finite``), before the cast to float32.
     """
+    if isinstance(source, os.PathLike):
+        source = os.fspath(source)
+    if not isinstance(source, str):
+        raise RMError(f"a dataset source is a path or a string, got {type(source).__name__}")
     if not source:
         raise RMError("no dataset given")
+    source = expand_embedded(source)
     _check_path(source)
     if Path(source).is_dir():
         raise RMError(f"{source} is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari "
