@@ -416,7 +416,10 @@ def test_demo_keeps_the_users_runs(tmp_path):
     assert shorter.returncode == 2, shorter.stderr[-3000:]
     assert shorter.stderr.splitlines()[-1] == (
         f"rmrl demo: error: {(runs / 'demo-ours-seed0').resolve()} holds an earlier run that differs from this demo "
-        "(trainer.steps: 20 -> 10); give another --out, or move that run away")
+        "(eval.every: 10 -> 5; trainer.steps: 20 -> 10); give another --out, or move that run away")
+    assert _files(runs) == written
+    longer = _demo(project, *[("40" if a == "20" else a) for a in DEMO])  # never extends the finished runs
+    assert longer.returncode == 2 and "(eval.every: 10 -> 20; trainer.steps: 20 -> 40)" in longer.stderr
     assert _files(runs) == written
 
 

@@ -4,6 +4,7 @@ Real files, real processes and real signals: nothing of what is tested is mocked
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -100,7 +101,7 @@ def test_a_diverging_run_stops_at_the_first_non_finite_loss_and_is_not_reported(
     assert "failed: step" in capsys.readouterr().err  # the only run is failed: nothing to score
     assert main(["train", str(recipe), "optim.lr_critic=1.0e+30", "optim.lr_value=1.0e+30", "trainer.steps=200",
                  "--multirun"]) == 2
-    assert "1 runs failed before and are not retried" in capsys.readouterr().err
+    assert "1 run(s) failed before (see its failed.json); not retried" in capsys.readouterr().err
 
 
 # --- resume --------------------------------------------------------------------------------------
@@ -112,19 +113,49 @@ def test_a_resume_with_another_method_is_refused_before_anything_is_written(tmp_
     with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: 'paper' -> 'none'; "
                                       r"method.bc.loss: \(absent\) -> 'mse'; .*method.name: 'iql' -> 'bc'"):
         train(load_recipe(recipe, ["resume=true", "method.name=bc", "method.bc.loss=mse", "data.refine=none",
-                                   "trainer.steps=20"]), progress=False)
+                                   "trainer.steps=10"]), progress=False)
     with pytest.raises(RMError, match=r"differs from the checkpoint's: data.refine: 'paper' -> 'reuse'$"):
-        train(load_recipe(recipe, ["resume=true", "data.refine=reuse", "trainer.steps=20"]), progress=False)
+        train(load_recipe(recipe, ["resume=true", "data.refine=reuse", "trainer.steps=10"]), progress=False)
     with pytest.raises(RMError, match=r"differs from the checkpoint's: method.hparams: 'published' -> 'ours'$"):
-        train(load_recipe(recipe, ["resume=true", "method.hparams=ours", "trainer.steps=20"]), progress=False)
+        train(load_recipe(recipe, ["resume=true", "method.hparams=ours", "trainer.steps=10"]), progress=False)
     assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
 
 
-def test_a_resume_below_the_checkpoint_step_is_refused(tmp_path, dataset):
+@pytest.mark.parametrize("change", [["trainer.steps=10"], ["trainer.steps=40"], ["eval.episodes=3"],
+                                    ["eval.env=AdroitHandDoor-v1"]])
+def test_a_resume_with_another_budget_or_evaluation_is_refused_and_writes_nothing(tmp_path, dataset, change):
+    """A schedule is built over trainer.steps (a longer budget is a new run), and a curve needs one evaluation."""
     recipe = make_recipe(tmp_path, dataset)
-    train(load_recipe(recipe, ["trainer.steps=20"]), progress=False)
-    with pytest.raises(RMError, match="is at step 20, past trainer.steps=10"):
-        train(load_recipe(recipe, ["resume=true", "trainer.steps=10"]), progress=False)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10"]), progress=False)
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    key = change[0].split("=")[0]
+    message = f"differs from the checkpoint's: {key}: " + (
+        "20 -> " if key == "trainer.steps" else "") + ".*" + ("a run of another budget is a new run" if key ==
+                                                              "trainer.steps" else "")
+    with pytest.raises(RMError, match=message):
+        train(load_recipe(recipe, ["resume=true", "trainer.steps=20", *change]), progress=False)
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+    train(load_recipe(recipe, ["resume=true", "trainer.steps=20", "trainer.threads=2"]), progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 20
+
+
+@pytest.mark.parametrize("again", [[], ["method.iql.expectile=0.8"], ["resume=true"]])
+def test_a_run_holding_evaluations_without_its_checkpoint_is_never_retrained(tmp_path, dataset, again, capsys):
+    """A finished run whose checkpoint was deleted (to save disk): a rerun, with or without another setting, and
+    a grid rerun leave every file as it was, each saying so in one line."""
+    from rm_torchrl.cli.train import run_grid
+
+    recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 3, every: 10, episodes: 1}\n")
+    run_dir = train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
+    (run_dir / "checkpoint.pt").unlink()
+    before = {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    assert main(["train", str(recipe), "trainer.steps=10", *again, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"rmrl train: error: run directory {run_dir} holds evaluations (eval.csv) but no checkpoint: it can "
+                   "neither continue nor be trained again in place; pick another name or seed (or move it away)\n")
+    run_grid([(str(recipe), ["trainer.steps=10", *again])], jobs=1)
+    assert "1 run(s) holds evaluations but no checkpoint; kept as it is, not retrained" in capsys.readouterr().err
+    assert {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
 class _Payload:
@@ -159,10 +190,9 @@ def test_a_run_without_checkpoint_restarts_without_resume(tmp_path, dataset):
     run_dir = tmp_path / "runs" / "tiny-seed0"
     (run_dir / "logs" / "scalars").mkdir(parents=True)
     (run_dir / "recipe.yaml").write_text("name: tiny\n")
-    (run_dir / "eval.csv").write_text("step,return_mean\n999,1\n")
+    (run_dir / "eval.csv").write_text("step,return_mean\n")  # its header only: no evaluation yet
     train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 10
-    assert "999" not in (run_dir / "eval.csv").read_text()
 
 
 # --- one process per run -------------------------------------------------------------------------
@@ -182,7 +212,8 @@ def test_a_second_process_on_the_same_run_is_refused(tmp_path, dataset):
     # the kernel released the dead process's lock: the run can continue
     ckpt = tmp_path / "runs" / "tiny-seed0" / "checkpoint.pt"
     at = torch.load(ckpt, weights_only=True)["step"] if ckpt.exists() else 0
-    proc = spawn("train", str(recipe), f"trainer.steps={at + 10}", *(["resume=true"] if at else []), "--no-progress")
+    proc = spawn("train", str(recipe), "trainer.steps=100000", f"trainer.stop_at={at + 10}",
+                 *(["resume=true"] if at else []), "--no-progress")
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
 
@@ -251,13 +282,14 @@ def test_a_signal_to_run_many_reaches_its_runs_which_checkpoint_and_none_outlive
     if signum != signal.SIGTERM:
         return
     target = max(stopped) + 20
-    again = subprocess.run([sys.executable, "-c", GRID, str(recipe), f"trainer.steps={target}", *steps],
+    again = subprocess.run([sys.executable, "-c", GRID, str(recipe), "trainer.steps=1000000", f"trainer.stop_at={target}",
+                            *steps],
                            capture_output=True, text=True, env=env, timeout=300)
     assert again.returncode == 0, again.stderr
     assert [torch.load(tmp_path / "runs" / f"tiny-seed{k}" / "checkpoint.pt", weights_only=True)["step"]
             for k in range(3)] == [target] * 3
     logged = [int(line.split(",")[0]) for line in (runs[0] / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
-    assert logged == sorted({*range(10, target + 1, 10), target})
+    assert logged == list(range(10, target + 1, 10))  # a session's stop_at step is not the run's last: not logged
 
 
 # --- a full disk -----------------------------------------------------------------------------------
@@ -291,7 +323,7 @@ def fill(disk: Path, leave: int) -> Path:
     return filler
 
 
-@pytest.mark.parametrize("leave,victim", [(64 * 1024, "checkpoint.pt"), (0, "recipe.yaml")])
+@pytest.mark.parametrize("leave,victim", [(64 * 1024, "checkpoint.pt"), (0, "refine_report.json")])
 def test_a_full_disk_is_one_line_naming_the_file_and_every_file_keeps_its_last_whole_version(
         tmp_path, dataset, small_disk, leave, victim):
     """No room for the next checkpoint (or for anything): one line naming the file; the partial temporary
@@ -299,7 +331,7 @@ def test_a_full_disk_is_one_line_naming_the_file_and_every_file_keeps_its_last_w
     recipe = make_recipe(tmp_path, dataset)
     argv = ["train", "--no-progress", str(recipe), f"out={small_disk}", "trainer.checkpoint_every=100"]
     run_dir = small_disk / "tiny-seed0"
-    assert main([*argv, "trainer.steps=100"]) == 0
+    assert main([*argv, "trainer.steps=300", "trainer.stop_at=100"]) == 0
     before = (run_dir / "checkpoint.pt").read_bytes()
     filler = fill(small_disk, leave)
     proc = spawn(*argv, "trainer.steps=300", "resume=true")
@@ -362,3 +394,36 @@ def test_a_missing_logger_package_leaves_a_run_that_starts_again(tmp_path, datas
     assert main(["train", str(recipe), "trainer.steps=10", "logger.backend=wandb", "--no-progress"]) == 2
     assert "logger.backend=wandb needs its package" in capsys.readouterr().err
     assert main(["train", str(recipe), "trainer.steps=10", "--no-progress"]) == 0
+
+
+def test_a_resume_that_fails_before_its_first_update_keeps_the_folders_recipe(tmp_path, dataset, monkeypatch):
+    import rm_torchrl.train.trainer as trainer_module
+
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10"]), progress=False)
+    written = (run_dir / "recipe.yaml").read_text()
+
+    def broken(*args):
+        raise RMError("the first update failed")
+
+    monkeypatch.setattr(trainer_module, "_first_step", broken)
+    with pytest.raises(RMError, match="the first update failed"):
+        train(load_recipe(recipe, ["trainer.steps=20", "resume=true", "trainer.threads=2"]), progress=False)
+    assert (run_dir / "recipe.yaml").read_text() == written
+    monkeypatch.undo()
+    train(load_recipe(recipe, ["trainer.steps=20", "resume=true", "trainer.threads=2"]), progress=False)
+    assert "threads: 2" in (run_dir / "recipe.yaml").read_text()
+
+
+def test_the_progress_clock_restarts_after_the_first_update():
+    """The ETA after a minute-long compile counts only the steps after it."""
+    from rm_torchrl.progress import progress_bar
+    from rm_torchrl.train.trainer import _restart_clock
+
+    bar = progress_bar(total=1000, initial=100, file=io.StringIO())
+    bar.start_t -= 3600  # as if the first update had taken an hour
+    bar.update()
+    assert bar.format_dict["elapsed"] > 3000
+    _restart_clock(bar)
+    assert bar.n == bar.initial == 101 and bar.format_dict["elapsed"] < 5
+    bar.close()

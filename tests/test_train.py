@@ -290,7 +290,7 @@ def test_resume_reaches_the_same_parameters(tmp_path, dataset, layout):
     ours = ["method.hparams=ours"]  # IQL with ours' label on the refined data: the old layout's ours
     straight = load_recipe(make_recipe(tmp_path, dataset), ["name=straight", *ours])
     train(straight, progress=False)
-    first = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "trainer.steps=100", *ours])
+    first = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "trainer.stop_at=100", *ours])
     train(first, progress=False)
     if layout == "today":
         rest = load_recipe(make_recipe(tmp_path, dataset), ["name=split", "resume=true", *ours])
@@ -301,7 +301,7 @@ def test_resume_reaches_the_same_parameters(tmp_path, dataset, layout):
         torch.save(state, ckpt)
         written.write_text(yaml.safe_dump(old_layout(yaml.safe_load(written.read_text())), sort_keys=False))
         assert "reuse: false" in written.read_text() and "hparams" not in written.read_text()
-        rest = load_recipe(written, ["resume=true", "trainer.steps=200"])
+        rest = load_recipe(written, ["resume=true", "trainer.stop_at=0"])
         assert (rest.method.name, rest.method.hparams, rest.data.refine) == ("iql", "ours", "paper")
         assert rest.to_dict() == {**straight.to_dict(), "name": "split", "resume": True}
     run_dir = train(rest, progress=False)
@@ -419,7 +419,7 @@ def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_pat
     grid = ["train", str(path), "trainer.steps=10", "trainer.checkpoint_every=5", "seed=0,1,2", "--multirun"]
     runs = tmp_path / "runs"
     assert main(["train", str(path), "trainer.steps=10", "seed=0", "--no-progress"]) == 0  # finished
-    assert main(["train", str(path), "trainer.steps=5", "seed=1", "--no-progress"]) == 0  # a checkpoint at 5 of 10
+    assert main(["train", str(path), "trainer.steps=10", "trainer.stop_at=5", "seed=1", "--no-progress"]) == 0  # 5 of 10
     (runs / "tiny-seed2" / "logs").mkdir(parents=True)  # killed before its first checkpoint
     (runs / "tiny-seed2" / "recipe.yaml").write_text("name: tiny\n")
     finished = (runs / "tiny-seed0" / "checkpoint.pt").stat().st_mtime_ns
@@ -429,7 +429,7 @@ def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_pat
     for seed in (1, 2):
         assert torch.load(runs / f"tiny-seed{seed}" / "checkpoint.pt", weights_only=True)["step"] == 10
     steps = [int(line.split(",")[0]) for line in (runs / "tiny-seed1" / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
-    assert steps == [5, 10]  # the first run logged its last step, the resumed one continued
+    assert steps == [10]  # logged every 1000 steps and at the run's end (step 5 ended a session, not the run)
     assert main(grid) == 0
     assert "3 of 3 runs already finished" in capfd.readouterr().err
     (runs / "tiny-seed2" / "checkpoint.pt").unlink()
@@ -443,7 +443,8 @@ def test_a_resumed_runs_eval_csv_has_one_line_ending(tmp_path, dataset):
     """Rows the resume keeps (rewritten) and rows it adds end alike, in ``\\n``; a ``\\r\\n`` row of an
     older run is normalised when it is kept."""
     recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 3, every: 5, episodes: 1}\n")
-    run_dir = train(load_recipe(recipe, ["trainer.steps=10", "trainer.checkpoint_every=10"]), progress=False)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10", "trainer.checkpoint_every=10"]),
+                    progress=False)
     eval_csv = run_dir / "eval.csv"
     eval_csv.write_bytes(eval_csv.read_bytes().replace(b"\n", b"\r\n"))  # as runs written before this fix
     train(load_recipe(recipe, ["trainer.steps=20", "trainer.checkpoint_every=10", "resume=true"]), progress=False)
@@ -457,7 +458,8 @@ def test_a_resumed_runs_eval_csv_has_one_line_ending(tmp_path, dataset):
 def test_a_row_cut_short_is_dropped_when_the_run_resumes(tmp_path, dataset):
     """A write cut short (a full disk, a kill) leaves an unfinished last row; the resume drops it."""
     recipe = make_recipe(tmp_path, dataset)
-    run_dir = train(load_recipe(recipe, ["trainer.steps=40", "trainer.checkpoint_every=40"]), progress=False)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=60", "trainer.stop_at=40", "trainer.checkpoint_every=40"]),
+                    progress=False)
     scalars = run_dir / "logs" / "scalars" / "loss_actor.csv"
     with scalars.open("a") as f:
         f.write("6")  # the start of the row of step 60

@@ -62,10 +62,7 @@ def _check_earlier(recipes) -> None:
         if not path.is_file():
             continue
         old = read_recipe(recipe.run_dir)
-        changes = recipe_changes(old, recipe.to_dict())
-        old_steps = (old.get("trainer") or {}).get("steps")
-        if isinstance(old_steps, int) and old_steps > recipe.trainer.steps:
-            changes.append(f"trainer.steps: {old_steps} -> {recipe.trainer.steps}")
+        changes = recipe_changes(old, recipe.to_dict())  # the budget and the evaluation included
         if changes:
             raise RMError(f"{recipe.run_dir} holds an earlier run that differs from this demo ({'; '.join(changes)}); "
                           "give another --out, or move that run away")

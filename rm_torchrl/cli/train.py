@@ -34,6 +34,7 @@ from tqdm import tqdm
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.run_format import LEFT_ALONE
 from rm_torchrl.train.config import SIGNAL_REPEAT
 from rm_torchrl.train.recipe import build_recipe, hydra_overrides, load_recipe, recipe_path, search_path_override
 
@@ -87,6 +88,14 @@ def _statuses_of(runs: list[tuple[str | None, list[str]]]) -> list[tuple[Path, s
     return [(r.run_dir, run_status(r), r.trainer.steps) for r in recipes]
 
 
+def _say_left_alone(runs: list[tuple[str, str]]) -> None:
+    """One line per kind of run a multirun leaves alone (failed, kept, unreadable), naming the folders."""
+    for status, why in LEFT_ALONE.items():
+        dirs = [d for d, s in runs if s == status]
+        if dirs:
+            tqdm.write(f"{len(dirs)} run(s) {why}: {dirs}", file=sys.stderr)
+
+
 def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     """The sweep of ``overrides`` through Hydra (its launcher and sweeper), resumable run by run."""
     import hydra
@@ -95,12 +104,9 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     combos = _sweep_combinations(path, overrides)
     before = _statuses_of([(path, c) for c in combos]) if combos is not None else []
     done = sum(s == "finished" for _, s, _ in before)
-    failed = [str(d) for d, s, _ in before if s == "failed"]
     if done:
         tqdm.write(f"{done} of {len(before)} runs already finished: skipped", file=sys.stderr)
-    if failed:
-        tqdm.write(f"{len(failed)} runs failed before and are not retried (see their failed.json): {failed}",
-                   file=sys.stderr)
+    _say_left_alone([(str(d), s) for d, s, _ in before])
     subdir = "${name}-seed${seed}" if combos is not None else "${name}-trial${hydra.job.num}-seed${seed}"
     argv = ["--multirun", *hydra_overrides(overrides, path), search_path_override(),
             "hydra.sweep.dir=${out}", f"hydra.sweep.subdir={subdir}",
@@ -133,7 +139,8 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     after = _statuses_of([(path, c) for c in combos])
     if signum:
         _interrupted(signum, _saved(after))
-    left = [str(d) for d, s, _ in after if s != "finished"]
+    alone = {str(d) for d, s, _ in before if s in LEFT_ALONE}
+    left = [str(d) for d, s, _ in after if s != "finished" and str(d) not in alone]
     if left:
         raise RMError(f"{len(left)} of {len(after)} runs did not finish (see the messages above): {left}")
     print(f"finished {len(after)} runs")
@@ -333,8 +340,8 @@ def run_job(cfg) -> float | None:
             print(f"{recipe.run_dir}: not started, the sweep was stopped", file=sys.stderr, flush=True)
             return None
         status = run_status(recipe)
-        if status == "failed":
-            print(f"{recipe.run_dir}: failed before (failed.json); not retried", file=sys.stderr)
+        if status in LEFT_ALONE:
+            print(f"{recipe.run_dir}: {LEFT_ALONE[status]}", file=sys.stderr)
             return None
         if status != "finished":
             recipe.resume = status == "resumable"
@@ -367,16 +374,14 @@ def run_job(cfg) -> float | None:
 def run_grid(runs: list[tuple[str | None, list[str]]], jobs: int) -> None:
     """``(recipe or None, overrides)`` runs that are not one sweep, with a multirun's policy: finished
     runs are skipped, killed ones resumed, failed ones not retried; every recipe is checked first."""
-    plans = [(path, overrides, status) for (path, overrides), (_, status, _) in
-             zip(runs, _statuses_of(runs))]
+    statuses = _statuses_of(runs)
+    plans = [(path, overrides, status) for (path, overrides), (_, status, _) in zip(runs, statuses)]
     todo = [[*([path] if path else []), *o, *(["resume=true"] if s == "resumable" else [])]
             for path, o, s in plans if s in ("new", "resumable")]
     done = sum(s == "finished" for *_, s in plans)
-    failed = [o for _, o, s in plans if s == "failed"]
     if done:
         tqdm.write(f"{done} of {len(runs)} runs already finished: skipped", file=sys.stderr)
-    if failed:
-        tqdm.write(f"{len(failed)} runs failed before and are not retried: {failed}", file=sys.stderr)
+    _say_left_alone([(str(d), s) for d, s, _ in statuses])
     run_many(todo, jobs, resume_hint="run the same command again to resume them")
 
 

@@ -95,6 +95,7 @@ class TrainerConfig:
     normalize_obs: bool = True
     log_every: int = 1000
     checkpoint_every: int = 50_000
+    stop_at: int = 0  # >0: this session stops (checkpointed) after that step; the run continues with resume=true
     threads: int = 0  # 0: all cores (a multirun shares them between its parallel jobs)
     device: str = "auto"  # auto (cuda if available) | cpu | cuda | cuda:N; environments stay on CPU
     compile: bool = False  # torch.compile the loss: ~25% more updates/s on CPU, after ~10 s of compilation

@@ -27,7 +27,7 @@ class PolicyInput:
 
     obs_keys: list  # what the networks read: observation (+ RM encoding)
     obs_dim: int
-    action_dim: int
+    action_dim: int | None  # None: take the evaluation env's (a policy loaded from a run)
     loc: torch.Tensor  # observation normalisation, shared with the evaluation env
     scale: torch.Tensor
     events: EventSpec | None  # the resolved event spec (None when the recipe names none)

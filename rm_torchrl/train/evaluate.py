@@ -95,6 +95,11 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
             f"eval env {recipe.eval.env!r} observes {dim} values but the data has {data.loc.shape[-1]}; "
             "set eval.observation (kitchen-v0 rebuilds the D4RL v0 layout) or another env"
         )
+    actions = env.action_spec.shape[-1]
+    if data.action_dim is not None and actions != data.action_dim:  # else found at the first evaluation
+        env.close()
+        raise RMError(f"eval env {recipe.eval.env!r} takes {actions} action values but the data's actions have "
+                      f"{data.action_dim}; set eval.env to the env the data was recorded in")
     env.append_transform(ObservationNorm(loc=data.loc, scale=data.scale, in_keys=["observation"], standard_normal=True))
     if torch.device(device).type != "cpu":
         env.append_transform(DeviceCastTransform(torch.device(device), orig_device=torch.device("cpu")))

@@ -111,7 +111,7 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     if recipe.data.refined:
         obs_keys.append(ENCODING_KEY)
         obs_dim += EventOrderedRM(events.names).encoding_dim(recipe.rm.encoding)
-    probe = make_eval_env(recipe, PolicyInput(obs_keys, obs_dim, 0, loc, scale, events))
+    probe = make_eval_env(recipe, PolicyInput(obs_keys, obs_dim, None, loc, scale, events))  # the env's actions
     action_dim = probe.action_spec.shape[-1]
     probe.close()
     inputs = PolicyInput(obs_keys, obs_dim, action_dim, loc, scale, events)
@@ -120,8 +120,9 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
                           target)
     try:
         method.loss.load_state_dict(state["loss"])
-    except RuntimeError as err:
-        raise RMError(f"{run_dir / CHECKPOINT} does not fit the networks of its recipe: {str(err).splitlines()[0]}") from None
+    except Exception as err:  # shapes (RuntimeError), missing entries, entries of another kind: all one answer
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+        raise RMError(f"{run_dir / CHECKPOINT} does not fit the networks of its recipe: {first}") from None
     method.policy.eval()
     return LoadedPolicy(method.policy,
                         lambda render=None, num_envs=None: make_eval_env(recipe, inputs, target, render, num_envs), recipe,

@@ -241,6 +241,9 @@ def validate(recipe: Recipe) -> None:
         raise RMError("recipe: data.source is required")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._=+-]*", recipe.name) or ".." in recipe.name:
         raise RMError(f"recipe: name must be a plain directory name (letters, digits, . _ - = +), got {recipe.name!r}")
+    if not 0 <= recipe.trainer.stop_at <= recipe.trainer.steps:
+        raise RMError(f"recipe: trainer.stop_at must lie in [0, trainer.steps={recipe.trainer.steps}] (0: run to the "
+                      f"end), got {recipe.trainer.stop_at}")
     if recipe.trainer.threads < 0:
         raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):

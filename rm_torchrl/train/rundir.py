@@ -21,12 +21,16 @@ import torch
 from rm_torchrl import files
 from rm_torchrl.errors import RMError
 from rm_torchrl.files import WriteFailed
-from rm_torchrl.run_format import CHECKPOINT, FAILED_FILE as FAILED, LOCK_FILE as LOCK, TRAINER_FILES, temp_name, upgrade_recipe
+from rm_torchrl.run_format import (CHECKPOINT, EVAL_FILE, FAILED_FILE as FAILED, LOCK_FILE as LOCK,
+                                   TRAINER_FILES, temp_name, upgrade_recipe)
 
-#: Recipe entries a resumed run must share with its checkpoint (the rest: steps, evaluation,
-#: logging, threads, compile may change between a run and its continuation).
-FROZEN = ("seed", "data", "rm", "method", "network", "optim", "trainer.batch_size", "trainer.gamma",
-          "trainer.tau", "trainer.normalize_obs", "trainer.flush_denormal")
+#: Recipe entries a resumed run must share with its checkpoint: what it learns from, the budget its schedules
+#: are built over (a longer budget is a new run) and how it is evaluated. Logging, checkpointing, threads,
+#: compile, the device and ``trainer.stop_at`` may change between a run and its continuation.
+FROZEN = ("seed", "data", "rm", "method", "network", "optim", "trainer.steps", "trainer.batch_size",
+          "trainer.gamma", "trainer.tau", "trainer.normalize_obs", "trainer.flush_denormal", "eval.env",
+          "eval.env_kwargs", "eval.observation", "eval.max_steps", "eval.every", "eval.episodes", "eval.score",
+          "eval.reward")
 _STATE_KEYS = ("step", "loss", "optimizers", "generator", "torch_rng", "obs_loc", "obs_scale", "recipe")
 
 
@@ -117,7 +121,8 @@ def load_checkpoint(path: Path) -> dict:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # truncated zip, garbage, a pickle with code in it: all unusable
         first = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
-        raise RMError(f"{path} is not a readable checkpoint ({first}); move it away to start the run again") from None
+        raise RMError(f"{path} is not a readable checkpoint ({first}); move its run directory away, or pick another "
+                      "name or seed, to train the run afresh") from None
     if not isinstance(state, dict) or any(k not in state for k in _STATE_KEYS):
         raise RMError(f"{path} is not a checkpoint of rm_torchrl (expected the entries {list(_STATE_KEYS)})")
     return state
@@ -148,6 +153,19 @@ def _foreign(run_dir: Path) -> list[str]:
     return sorted(p.name for p in run_dir.iterdir() if p.name not in TRAINER_FILES)
 
 
+def last_evaluated_step(run_dir: Path) -> int | None:
+    """The step of ``eval.csv``'s last row, None when the run holds no evaluation (or an unreadable one)."""
+    try:
+        rows = (Path(run_dir) / EVAL_FILE).read_text().splitlines()[1:]
+    except (OSError, UnicodeDecodeError):
+        return None
+    rows = [row for row in rows if row.strip()]
+    try:
+        return int(rows[-1].split(",", 1)[0]) if rows else None
+    except ValueError:
+        return -1  # rows that are not this trainer's: evaluations all the same, never to be deleted
+
+
 def open_run(recipe) -> dict | None:
     """Decides, before anything is written, how ``recipe`` starts: returns the checkpoint to resume, or None.
 
@@ -164,11 +182,17 @@ def open_run(recipe) -> dict | None:
         state = load_checkpoint(ckpt)
         changes = recipe_changes(upgrade_recipe(state["recipe"]), recipe.to_dict())
         if changes:
-            raise RMError(f"resume=true with a recipe that differs from the checkpoint's: {'; '.join(changes)}")
+            budget = any(c.startswith("trainer.steps:") for c in changes)
+            raise RMError(f"resume=true with a recipe that differs from the checkpoint's: {'; '.join(changes)}"
+                          + ("; a run of another budget is a new run: pick another name or seed" if budget else ""))
         if state["step"] > recipe.trainer.steps:
             raise RMError(f"{ckpt} is at step {state['step']}, past trainer.steps={recipe.trainer.steps}")
         (run_dir / FAILED).unlink(missing_ok=True)
         return state
+    evaluated = last_evaluated_step(run_dir)
+    if evaluated is not None:
+        raise RMError(f"run directory {run_dir} holds evaluations (eval.csv) but no checkpoint: it can neither "
+                      "continue nor be trained again in place; pick another name or seed (or move it away)")
     foreign = _foreign(run_dir)
     if foreign:
         raise RMError(f"run directory {run_dir} has no checkpoint and holds files the trainer did not write: "
@@ -188,11 +212,16 @@ def mark_failed(run_dir: Path, step: int, what: str, message: str) -> None:
 
 
 def run_status(recipe) -> str:
-    """``new``, ``resumable``, ``finished`` or ``failed``: what a multirun does with ``recipe``'s run."""
+    """What a multirun does with ``recipe``'s run: ``new``, ``resumable``, ``finished``, or one of
+    :data:`LEFT_ALONE` (``failed``, ``kept``: evaluations without a checkpoint, ``unreadable``)."""
     run_dir = recipe.run_dir
     if (run_dir / FAILED).is_file():
         return "failed"
     ckpt = run_dir / CHECKPOINT
     if not ckpt.is_file():
-        return "new"
-    return "finished" if load_checkpoint(ckpt)["step"] >= recipe.trainer.steps else "resumable"
+        return "new" if last_evaluated_step(run_dir) is None else "kept"
+    try:
+        step = load_checkpoint(ckpt)["step"]
+    except RMError:
+        return "unreadable"
+    return "finished" if step >= recipe.trainer.steps else "resumable"

@@ -236,7 +236,11 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         from rm_torchrl.train.evaluate import Evaluator
 
         evaluator = Evaluator(recipe, data, method.policy, device)
-    write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+    def write_recipe() -> None:
+        write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+
+    if state is None:  # a resume keeps the folder's recipe.yaml until its first update has run
+        write_recipe()
     if data.report is not None:
         write_atomic(run_dir / REFINE_FILE, json.dumps(data.report, indent=2) + "\n")
 
@@ -304,21 +308,27 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
     completed = start
     started = time.perf_counter()
     eval_seconds = 0.0  # updates_per_second counts gradient steps only
+    last = recipe.trainer.stop_at or recipe.trainer.steps
     with _StopOnSignal() as stop:
-        for step in range(start + 1, recipe.trainer.steps + 1):
+        for step in range(start + 1, last + 1):
             if stop.signum is not None:
                 break
-            update = _first_step if step == start + 1 else gradient_step
+            first = step == start + 1
             if method.schedule is not None:
                 method.schedule(step)
             try:
-                losses = update(method, terms, data.sample(recipe.trainer.batch_size, generator))
+                losses = (_first_step if first else gradient_step)(method, terms,
+                                                                    data.sample(recipe.trainer.batch_size, generator))
             except NonFinite as err:
                 bar.close()
                 message = (f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; "
                            f"{_kept(ckpt_path, hint='')}")
                 mark_failed(run_dir, step, str(err), message)
                 raise RMError(message) from None
+            if first:
+                if state is not None:
+                    write_recipe()
+                _restart_clock(bar)  # the compile is no guide to the steps after it
             if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
                 for key, entry in losses.items():
                     if entry.numel() == 1:  # the loss terms and the loss's scalar diagnostics
@@ -347,5 +357,16 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
                    "checkpoint written, continue with resume=true")
         stop.forward(message)
         raise RunInterrupted(stop.signum, message)
+    if completed < recipe.trainer.steps:
+        print(f"trainer.stop_at: stopped after step {completed} of {recipe.trainer.steps}; checkpoint written, "
+              "continue with resume=true", file=sys.stderr)
     return run_dir
+
+
+def _restart_clock(bar) -> None:
+    """The bar's rate and ETA counted from after the first update (compiling it can take a minute)."""
+    done = bar.n
+    bar.reset(total=bar.total)
+    bar.initial = bar.n = bar.last_print_n = done
+    bar.refresh()
 
