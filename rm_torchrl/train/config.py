@@ -96,7 +96,7 @@ class TrainerConfig:
     log_every: int = 1000
     checkpoint_every: int = 50_000
     stop_at: int = 0  # >0: this session stops (checkpointed) after that step; the run continues with resume=true
-    threads: int = 0  # 0: all cores (a multirun shares them between its parallel jobs)
+    threads: int = 0  # 0: the cores idle at the start (train/threads.py; a multirun shares them between its jobs)
     device: str = "auto"  # auto (cuda if available) | cpu | cuda | cuda:N; environments stay on CPU
     compile: bool = False  # torch.compile the loss: ~25% more updates/s on CPU, after ~10 s of compilation
     flush_denormal: bool = True  # subnormal floats as 0 on CPU: without it updates slow 4-5x within 3k steps

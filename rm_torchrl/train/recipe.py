@@ -245,7 +245,7 @@ def validate(recipe: Recipe) -> None:
         raise RMError(f"recipe: trainer.stop_at must lie in [0, trainer.steps={recipe.trainer.steps}] (0: run to the "
                       f"end), got {recipe.trainer.stop_at}")
     if recipe.trainer.threads < 0:
-        raise RMError(f"recipe: trainer.threads must be >= 0 (0: all cores), got {recipe.trainer.threads}")
+        raise RMError(f"recipe: trainer.threads must be >= 0 (0: the idle cores), got {recipe.trainer.threads}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):
         raise RMError(f"recipe: trainer.device must be {DEVICES}, got {recipe.trainer.device!r}")
     if recipe.data.refined:

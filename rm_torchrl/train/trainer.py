@@ -29,6 +29,7 @@ from rm_torchrl.train.data import prepare_data
 from rm_torchrl.methods.losses import compile_method
 from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, LOGS_DIR, RECIPE_FILE, REFINE_FILE
+from rm_torchrl.train.threads import auto_threads
 from rm_torchrl.train.rundir import (RunLock, WriteFailed, appending, cut_partial_line, load_checkpoint, mark_failed,
                                     open_run, save_checkpoint, write_atomic)
 
@@ -213,8 +214,10 @@ def _kept(ckpt_path: Path, hint: str = " (continue with resume=true)") -> str:
 
 def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) -> Path:
     ckpt_path = run_dir / CHECKPOINT
-    if recipe.trainer.threads:
-        torch.set_num_threads(recipe.trainer.threads)
+    threads = recipe.trainer.threads or auto_threads()
+    if not recipe.trainer.threads:
+        tqdm.write(f"trainer.threads=0: {threads} thread(s), the cores idle now", file=sys.stderr)
+    torch.set_num_threads(threads)
     # Weights and optimiser moments drift into subnormal floats within a few thousand updates
     # (measured on door-human-v0: 3.6 s per 250 updates at the start, 16 s by step 3000); CPU
     # arithmetic on subnormals is many times slower, so they are flushed to zero (process-wide).
