@@ -15,12 +15,15 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, GymEnv, GymWrapper, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.events import EventSpec, load_event_spec
 from rm_torchrl.envs import KitchenV0Observation, RMEnvTransform, kitchen_v0_goal
+from rm_torchrl.refine import LabelRM, RMEncoding
 from rm_torchrl.rm import EventOrderedRM
 
 with warnings.catch_warnings():
@@ -387,3 +390,40 @@ def test_kitchen_v0_matches_d4rl_initial_state():
     env = TransformedEnv(GymEnv("FrankaKitchen-v1", tasks_to_complete=KITCHEN_TASKS), KitchenV0Observation())
     obs = env.reset()["observation"]
     assert (obs[:30] - data[0, :30]).abs().max() < 0.1
+
+
+# --------------------------------------------------------------------------------------------
+# RMEncoding: the offline encoding of a refined buffer is the one this transform emits online
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("encoding", ["one_hot", "slots"])
+def test_offline_encoding_of_labelled_data_matches_the_env_transform(encoding):
+    """The same event sequence online (the env transform) and offline (LabelRM on the rollout's observations,
+    then RMEncoding): one encoding, before and after every step."""
+    env = TransformedEnv(GymWrapper(ScriptedEnv(SCHEDULE)), RMEnvTransform(ABC, encoding=encoding))
+    online = env.rollout(len(SCHEDULE) - 1, break_when_any_done=False)
+    offline = TensorDict({"observation": online["observation"], "episode": torch.zeros(len(online), dtype=torch.long),
+                          "next": {"observation": online["next", "observation"]}}, batch_size=online.batch_size)
+    encoded = RMEncoding(ABC, encoding)(LabelRM(ABC)(offline))
+    assert torch.equal(encoded["rm_state"], online["rm_state"])
+    for key in ("rm_encoding", ("next", "rm_encoding")):
+        assert torch.equal(encoded[key], online[key]), key
+        assert encoded[key].dtype == online[key].dtype == torch.float32
+
+
+def test_as_a_replay_buffer_transform_it_encodes_each_sample():
+    labelled = LabelRM(ABC)(TensorDict({
+        "observation": torch.tensor(SCHEDULE[:-1], dtype=torch.float32), "episode": torch.zeros(5, dtype=torch.long),
+        "next": {"observation": torch.tensor(SCHEDULE[1:], dtype=torch.float32)}}, batch_size=[5]))
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(5), batch_size=4)
+    buffer.extend(labelled)
+    buffer.append_transform(RMEncoding(ABC))
+    sample = buffer.sample()
+    assert sample["rm_encoding"].shape == (4, RMEncoding(ABC).rm.num_states)
+    assert torch.equal(sample["next", "rm_encoding"].argmax(-1), RMEncoding(ABC).rm.index(sample["next", "rm_state"]))
+
+
+def test_data_without_rm_states_is_one_line():
+    with pytest.raises(RMError, match="RMEncoding needs 'rm_state' in the data"):
+        RMEncoding(ABC)(TensorDict({"observation": torch.zeros(3, 3)}, batch_size=[3]))
+    with pytest.raises(RMError, match="unknown RM state encoding 'dense'"):
+        RMEncoding(ABC, "dense")

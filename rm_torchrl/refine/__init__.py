@@ -1,4 +1,5 @@
 """Dataset refinement stages (paper sections 3.2-3.4, and reuse beyond it) as composable TorchRL transforms."""
+from rm_torchrl.refine.encode import RMEncoding
 from rm_torchrl.refine.label import LabelRM
 from rm_torchrl.refine.order import EventOrder, best_event_order
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, refine, refine_replay_buffer, run_pipeline
@@ -16,6 +17,7 @@ __all__ = [
     "Splice",
     "KeepShortest",
     "CounterfactualRelabel",
+    "RMEncoding",
     "best_event_order",
     "make_refine_pipeline",
     "refine",

@@ -12,8 +12,8 @@ from rm_torchrl.data.refined_to_minari import export_record, split_rm_state
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
+from rm_torchrl.refine.encode import RMEncoding
 from rm_torchrl.refine.pipeline import refine
-from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.run_format import REUSED
 from rm_torchrl.train.config import Recipe
 
@@ -107,10 +107,11 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
         columns["next"][key] = data.get(("next", key))
     columns["next"]["reward"] = columns["next"]["reward"].float()
     obs_keys = ["observation"]
-    if use_rm:
-        rm = EventOrderedRM(spec.names)
-        columns[ENCODING_KEY] = rm.encode(data.get("rm_state"), recipe.rm.encoding)
-        columns["next"][ENCODING_KEY] = rm.encode(data.get(("next", "rm_state")), recipe.rm.encoding)
+    if use_rm:  # what RMEnvTransform emits online, from the same RM states
+        encoded = RMEncoding(spec, recipe.rm.encoding, encoding_key=ENCODING_KEY)(
+            data.select("rm_state", ("next", "rm_state")))
+        columns[ENCODING_KEY] = encoded.get(ENCODING_KEY)
+        columns["next"][ENCODING_KEY] = encoded.get(("next", ENCODING_KEY))
         obs_keys.append(ENCODING_KEY)
     td = TensorDict(columns, batch_size=data.batch_size)
     obs = td.get("observation")
