@@ -132,3 +132,18 @@ def test_report_gifs_without_an_opengl_backend_still_write_the_report(run_dir, t
     assert cell and len(set(cell.groups())) == 1, stdout  # one seed: its value alone, its CI [x, x]
     assert "## Final evaluation (Table 1)" in results and "(1 episode per evaluation)" in results
     assert (out / "learning_curves.png").is_file() and not list((out / "gifs").iterdir())
+
+
+def test_a_bad_device_and_a_checkpoint_with_a_nan_step_are_one_line(capsys, run_dir, tmp_path):
+    import torch
+
+    assert main(["evaluate", str(run_dir), "--device", "xyz"]) == 2
+    assert error_line(capsys.readouterr().err, "evaluate") == "device must be auto, cpu, cuda or cuda:N, got 'xyz'"
+    broken = tmp_path / "broken"
+    shutil.copytree(run_dir, broken)
+    state = torch.load(broken / "checkpoint.pt", weights_only=True)
+    state["step"] = float("nan")
+    torch.save(state, broken / "checkpoint.pt")
+    assert main(["evaluate", str(broken)]) == 2
+    assert error_line(capsys.readouterr().err, "evaluate") == (
+        f"{broken / 'checkpoint.pt'} is not a checkpoint of rm_torchrl: its step must be a whole number >= 0, got nan")

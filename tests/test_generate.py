@@ -154,3 +154,15 @@ def test_rmrl_main_reports_errors_without_traceback(cache, capsys):
 def test_bad_hesitation_options(cache, kwargs, match):
     with pytest.raises(RMError, match=match):
         generate_dataset(GENERATORS["relocate-human"], "rmrl/relocate-bad-v0", episodes=1, policy_kwargs=kwargs)
+
+
+def test_help_and_a_negative_seed(capsys, cache):
+    """The help prints (a '%' in a generator's description once broke argparse); a negative seed is one line."""
+    from rm_torchrl.cli.main import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["generate", "--help"])
+    assert exit_.value.code == 0 and "kitchen-partial" in capsys.readouterr().out
+    assert main(["generate", "relocate-human", "--out-name", "rmrl/x-v0", "--seed", "-1"]) == 2
+    assert capsys.readouterr().err == "rmrl generate: error: --seed must be an integer in [0, 2**32-1], got -1\n"
+    assert not any("x-v0" in path for path in leftovers(cache))

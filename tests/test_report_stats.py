@@ -369,3 +369,40 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
               {s: 1.0 for s in range(10_000, 500_001, 10_000)})
     refused = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(legacy))
     assert refused.returncode != 0 and "optim.lr_actor: (absent) -> 3e-05" in refused.stderr
+
+
+def test_linked_and_unreadable_run_folders_are_counted_or_named(tmp_path):
+    """A linked run directory is a run; a linked folder of runs (not followed) and an unreadable folder each get
+    a 'left out' line: the statistics never silently use fewer seeds."""
+    import os
+
+    root, elsewhere = tmp_path / "runs", tmp_path / "elsewhere"
+    runs(root, "door-human-v0", "ours", [10.0, 20.0])
+    runs(elsewhere, "door-human-v0", "ours", [30.0], seeds=[2])
+    runs(elsewhere / "group", "door-human-v0", "ours", [40.0], seeds=[3])
+    (root / "linked-seed2").symlink_to(next(elsewhere.glob("*-seed2")))
+    (root / "linked-group").symlink_to(elsewhere / "group")
+    locked = root / "locked"
+    runs(locked, "door-human-v0", "ours", [50.0], seeds=[4])
+    locked.chmod(0)
+    try:
+        skipped = []
+        loaded = load_runs([root], skipped=skipped)
+        if os.access(locked, os.R_OK):  # root reads everything: the folder's runs count
+            assert sorted(r.seed for r in loaded) == [0, 1, 2, 4]
+        else:
+            assert sorted(r.seed for r in loaded) == [0, 1, 2]
+            assert any("locked: cannot be read" in line for line in skipped), skipped
+        assert any("linked-group: a link to a folder, not followed" in line for line in skipped), skipped
+    finally:
+        locked.chmod(0o755)
+
+
+def test_a_seed_that_is_not_a_whole_number_is_one_line(tmp_path):
+    from rm_torchrl.errors import RMError
+
+    runs(tmp_path, "door-human-v0", "ours", [10.0])
+    recipe = next(tmp_path.glob("*-seed0")) / "recipe.yaml"
+    recipe.write_text(recipe.read_text().replace("seed: 0", "seed: abc"))
+    with pytest.raises(RMError, match=r"recipe.yaml: seed must be a whole number >= 0, got 'abc'"):
+        load_runs([tmp_path])

@@ -15,8 +15,8 @@ def add_arguments(p) -> None:
     from rm_torchrl.generate.cloned import CLONED
 
     described = {**{n: g.description for n, g in GENERATORS.items()}, **{n: c.description for n, c in CLONED.items()}}
-    p.add_argument("generator", choices=sorted(described), help="what to generate: " + "; ".join(
-        f"{name}: {text}" for name, text in sorted(described.items())))
+    p.add_argument("generator", choices=sorted(described), help="what to generate: " + "; ".join(  # argparse %-formats
+        f"{name}: {text}" for name, text in sorted(described.items())).replace("%", "%%"))
     p.add_argument("--out-name", required=True, metavar="NAME",
                    help="Minari dataset id to write, e.g. rmrl/relocate-human-v0 (namespace/name-v<N>)")
     p.add_argument("--episodes", type=int, default=25,
@@ -47,6 +47,9 @@ def run(args) -> int:
 
     if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
         raise RMError(f"--noise must be a finite number >= 0, got {args.noise}")
+    from rm_torchrl.train.config import check_seed
+
+    check_seed(args.seed, "--seed")
     from rm_torchrl.generate.cloned import CLONED
 
     if args.generator in CLONED:

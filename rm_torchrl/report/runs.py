@@ -125,7 +125,7 @@ class Run:
 
     @property
     def seed(self) -> int:
-        return int(self.recipe.get("seed", 0))
+        return self.recipe.get("seed", 0)  # checked by read_run
 
     @property
     def refined(self) -> bool:
@@ -195,11 +195,13 @@ def _is_run_dir(path: Path) -> bool:
     return (path / EVAL_FILE).is_file() and (path / RECIPE_FILE).is_file()
 
 
-def find_run_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
+def find_run_dirs(paths: Iterable[str | os.PathLike], unread: list[str] | None = None) -> list[Path]:
     """Every run directory (one holding eval.csv and recipe.yaml) at or below ``paths``.
 
     Run directories are not searched further down. The result is sorted and free of
-    duplicates; an ``eval.csv`` or ``recipe.yaml`` file stands for its directory.
+    duplicates; an ``eval.csv`` or ``recipe.yaml`` file stands for its directory. A linked run
+    directory counts; folders that cannot be read and linked folders that are not runs (not
+    followed: a link can loop) get a line each in ``unread`` when given.
     """
     paths = list(paths)
     if not paths:
@@ -217,14 +219,24 @@ def find_run_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
         if _is_run_dir(path):
             found[path.resolve()] = None
             continue
-        for root, dirs, files in os.walk(path):
+        def cannot_read(err: OSError) -> None:
+            if unread is not None:
+                unread.append(f"{err.filename}: cannot be read ({err.strerror}); its runs, if any, are left out")
+
+        for root, dirs, files in os.walk(path, onerror=cannot_read):
             root_path = Path(root)
             dirs.sort()
             if EVAL_FILE in files and RECIPE_FILE in files:
                 found[root_path.resolve()] = None
                 dirs.clear()
-            elif EVAL_FILE in files:
+                continue
+            if EVAL_FILE in files:
                 orphans.append(root_path)
+            for name in [d for d in dirs if (root_path / d).is_symlink()]:
+                if _is_run_dir(root_path / name):
+                    found[(root_path / name).resolve()] = None
+                elif unread is not None:
+                    unread.append(f"{root_path / name}: a link to a folder, not followed; runs below it are left out")
     if not found:
         where = ", ".join(str(p) for p in paths)
         hint = f"; {orphans[0]} has eval.csv but no recipe.yaml" if orphans else ""
@@ -334,6 +346,9 @@ def read_run(run_dir: str | os.PathLike, dataset_from: str = "name") -> Run:
         why = ("eval.env is empty in its recipe, so it never evaluates" if not recipe.get("eval", {}).get("env")
                else f"it has not reached its first evaluation (eval.every={every}) yet")
         raise RMError(f"run {run_dir} has no evaluations (eval.csv holds only its header): {why}")
+    seed = recipe.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise RMError(f"{run_dir / RECIPE_FILE}: seed must be a whole number >= 0, got {seed!r}")
     metric = "score" if recipe.get("eval", {}).get("score") else "return_mean"
     if metric not in evals:
         raise RMError(f"{run_dir / EVAL_FILE} has no '{metric}' column (eval.score={recipe['eval'].get('score')!r})")
@@ -363,7 +378,8 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
     paths = list(paths)
     runs, left_out, named = [], [], []
     roots = [Path(p).resolve() for p in paths]
-    for run_dir in find_run_dirs(paths):
+    unread: list[str] = []
+    for run_dir in find_run_dirs(paths, unread):
         shown = _below_root(run_dir, roots)
         failed = run_dir / FAILED_FILE
         if failed.is_file():
@@ -382,6 +398,8 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
                 raise
             left_out.append(str(err))
             named.append(str(err).replace(str(run_dir), shown))
+    left_out += unread
+    named += unread
     if not runs:
         raise RMError(left_out[0] if len(left_out) == 1 else
                       f"no run has evaluations to report ({len(left_out)} runs):\n  " + "\n  ".join(left_out))

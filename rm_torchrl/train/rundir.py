@@ -125,6 +125,9 @@ def load_checkpoint(path: Path) -> dict:
                       "name or seed, to train the run afresh") from None
     if not isinstance(state, dict) or any(k not in state for k in _STATE_KEYS):
         raise RMError(f"{path} is not a checkpoint of rm_torchrl (expected the entries {list(_STATE_KEYS)})")
+    if isinstance(state["step"], bool) or not isinstance(state["step"], int) or state["step"] < 0:
+        raise RMError(f"{path} is not a checkpoint of rm_torchrl: its step must be a whole number >= 0, "
+                      f"got {state['step']!r}")
     return state
 
 
