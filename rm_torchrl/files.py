@@ -27,6 +27,8 @@ def write_atomic(path: Path, data: bytes | str, tmp: Path | None = None) -> None
             f.write(data.encode() if isinstance(data, str) else data)
         os.replace(tmp, path)
     except OSError as err:
-        if tmp.parent.is_dir():
+        try:
             tmp.unlink(missing_ok=True)
+        except OSError:  # a read-only folder, a name too long: there is no temporary file to remove
+            pass
         raise WriteFailed(path, err) from None

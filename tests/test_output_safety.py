@@ -393,3 +393,32 @@ def test_symlink_loop_and_dangling_link_are_named(capsys, tmp_path):
                           (tmp_path / "gone.hdf5", f"is a symbolic link to {tmp_path / 'nowhere.hdf5'}, which does not exist")):
         message = assert_error(capsys, "inspect", ["inspect", "--dataset", source, "--events", "door"], match)
         assert message.startswith(str(source))
+
+
+def test_unforeseen_write_errors_are_one_line(tmp_path):
+    """A name too long for the file system and a full stdout: one line each, exit 2, no traceback."""
+    long_out = tmp_path / ("a" * 300)
+    for argv in (["rm-graph", "--events", "door", "--out", str(long_out)],
+                 ["refine", "--dataset", "embedded:door-human-v0.hdf5", "--events", "door", "--out", str(long_out)]):
+        done = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", *argv], capture_output=True, text=True,
+                              timeout=300)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1 and "too long" in done.stderr, done.stderr
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "rm-graph", "--events", "door"],
+                              stdout=full, stderr=subprocess.PIPE, text=True, timeout=300)
+    assert done.returncode == 2
+    assert done.stderr == "rmrl rm-graph: error: No space left on device (writing the output)\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_write_atomic_whose_clean_up_fails_still_raises_write_failed(tmp_path, monkeypatch):
+    from rm_torchrl import files
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(files.os, "replace", refuse)
+    monkeypatch.setattr(files.Path, "unlink", refuse)
+    with pytest.raises(files.WriteFailed, match="Permission denied"):
+        files.write_atomic(tmp_path / "x.txt", "data")

@@ -427,3 +427,20 @@ def test_the_progress_clock_restarts_after_the_first_update():
     _restart_clock(bar)
     assert bar.n == bar.initial == 101 and bar.format_dict["elapsed"] < 5
     bar.close()
+
+
+def test_a_signal_after_the_last_step_leaves_a_finished_run(tmp_path, dataset, monkeypatch):
+    """SIGINT during the last step (or its final evaluation): the run is complete, not "continue with resume"."""
+    import rm_torchrl.train.trainer as trainer_module
+
+    real, calls = trainer_module.gradient_step, {"n": 0}
+
+    def last_step_interrupted(*args):
+        calls["n"] += 1
+        if calls["n"] == 10:  # the last update
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args)
+
+    monkeypatch.setattr(trainer_module, "gradient_step", last_step_interrupted)
+    run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=10"]), progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 10

@@ -210,11 +210,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rmrl {args.command}: error: {err}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # `rmrl rm-graph ... | head`: the reader has what it wanted
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        _quiet_stdout()
         return 0
+    except OSError as err:  # a write the command did not foresee: a full disk or stdout, a name too long
+        where = f": {err.filename}" if err.filename else " (writing the output)"
+        _quiet_stdout()  # what stdout still buffers would fail again at exit
+        print(f"rmrl {args.command}: error: {err.strerror or err}{where}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt as err:
         return interrupted(err, f"rmrl {args.command}")
+
+
+def _quiet_stdout() -> None:
+    """Points stdout at /dev/null, so that flushing it at exit cannot fail again."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
 
 
 def interrupted(err: KeyboardInterrupt, prog: str) -> int:

@@ -358,7 +358,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
                 bar.set_postfix(shown, refresh=False)
         checkpoint(completed)  # before the bar's last line: a parent that died leaves a broken pipe to write to
         bar.close()
-    if stop.signum is not None:
+    if stop.signum is not None and completed < recipe.trainer.steps:  # after the last step the run is finished
         message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {recipe.trainer.steps}; "
                    "checkpoint written, continue with resume=true")
         stop.forward(message)
