@@ -429,3 +429,8 @@ def test_names_with_spaces_and_lambdas_still_work():
     assert spec.names == ["light switch"]
     spec = EventSpec.from_callables([lambda o: o["observation"][:, 0] > 0, lambda o: o["observation"][:, 1] > 0])
     assert spec.names == ["e1", "e2"]  # not '<lambda>' (a separator, and twice)
+
+
+def test_an_empty_event_spec_name_says_what_to_give():
+    with pytest.raises(RMError, match=r"^no event spec given: name a built-in one \(door, .*\) or a YAML file$"):
+        load_event_spec("")

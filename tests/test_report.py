@@ -531,3 +531,16 @@ def test_nonfinite_evaluations_are_missing_points_of_the_curve(tmp_path):
     assert mean.tolist() == [2.0, 5.0, 3.0]
     assert std.tolist() == [pytest.approx(2 ** 0.5), 0.0, 0.0]
     assert group.mean == 3.0 and group.std is None and [r.seed for r in group.nonfinite] == [1]
+
+
+def test_the_demo_summary_leaves_out_nan_seeds_and_claims_only_what_its_ci_shows(tmp_path):
+    from rm_torchrl.cli.demo import summary
+
+    for seed, (ours, iql) in enumerate([(0.2, 0.1), (0.1, 0.2), (float("nan"), 0.1)]):
+        write_run(tmp_path, "demo-ours", seed, "ours", True, "door", {20: ours})
+        write_run(tmp_path, "demo-iql", seed, "iql", False, "door", {20: iql})
+    text = summary(sorted(tmp_path.iterdir()), "door-human-v0")
+    assert "nan" not in text.split("Left out")[0]
+    assert "Left out (non-finite final evaluation): demo-ours-seed2 (final score nan)." in text
+    assert "These seeds do not separate ours from IQL at this budget: P(ours > IQL) = " in text  # 2 against 3 seeds
+    assert "over 2 and 3 seeds" in text

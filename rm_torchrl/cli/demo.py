@@ -100,16 +100,19 @@ def summary(run_dirs: list[Path], label: str) -> str:
     if not runs:
         raise RMError("no demo run has an evaluation to report")
     first = runs[0].recipe
-    n_events = len(load_event_spec(first["data"]["events"]).names)
+    events = next(r.recipe["data"]["events"] for r in runs if r.recipe["data"].get("events"))
+    n_events = len(load_event_spec(events).names)
     lines = [f"# rmrl demo: ours vs IQL on {label}", "",
              f"Each number: mean ± std over seeds of the final evaluation in {first['eval']['env']}, "
              f"beside its budget (gradient steps per run, seeds, evaluation episodes). Ours = IQL with weight "
              f"decay on the RM-refined data (recipes/method/ours.yaml); IQL = plain IQL on the raw data "
              f"(recipes/method/iql.yaml).", "",
              f"| method | D4RL score | success rate | events reached (of {n_events}) | budget |", "|---|---:|---:|---:|---|"]
-    means = {}
+    finals, left_out = {}, []
     for method in ("Ours", "IQL"):
         members = [r for r in runs if r.method == method]
+        left_out += [f"{r.path.name} (final score {r.final_value})" for r in members if not r.finite]
+        members = [r for r in members if r.finite]  # a policy gone NaN has no score to average
         if not members:
             continue
         final = {key: np.array([r.evals[key][-1] for r in members]) for key in ("score", "success_rate", "events_mean")}
@@ -118,13 +121,29 @@ def summary(run_dirs: list[Path], label: str) -> str:
         episodes = sorted({r.episodes for r in members})
         budget = (f"{'/'.join(f'{s:,}' for s in steps)} steps, seed{'s' * (len(members) > 1)} {seeds}, "
                   f"{'/'.join(map(str, episodes))} episode{'s' * (episodes != [1])}")
-        means[method] = final["score"].mean()
+        finals[method] = final["score"]
         lines.append(f"| {method} | {_mean_std(final['score'], 1)} | {_mean_std(final['success_rate'], 2)} | "
                      f"{_mean_std(final['events_mean'], 2)} | {budget} |")
-    if len(means) == 2:
-        verdict = "above" if means["Ours"] > means["IQL"] else "not above"
-        lines += ["", f"Ours is {verdict} IQL at this budget ({means['Ours']:.1f} vs {means['IQL']:.1f} mean score)."]
+    if left_out:
+        lines += ["", f"Left out (non-finite final evaluation): {', '.join(left_out)}."]
+    if len(finals) == 2:
+        lines += ["", verdict(finals["Ours"], finals["IQL"])]
     return "\n".join(lines) + "\n"
+
+
+def verdict(ours: np.ndarray, iql: np.ndarray) -> str:
+    """What the seeds show, from P(ours > IQL) and its bootstrap 95% CI: above or below only when the CI says so."""
+    from rm_torchrl.report.stats import probability_of_improvement
+
+    p = probability_of_improvement(ours, iql)
+    if p.lo > 0.5:
+        said = "Ours is above IQL at this budget"
+    elif p.hi < 0.5:
+        said = "Ours is below IQL at this budget"
+    else:
+        said = "These seeds do not separate ours from IQL at this budget"
+    return (f"{said}: P(ours > IQL) = {p.value:.2f} [95% CI {p.lo:.2f}, {p.hi:.2f}] over {len(ours)} and {len(iql)} "
+            f"seeds ({ours.mean():.1f} vs {iql.mean():.1f} mean score).")
 
 
 def run(args) -> int:

@@ -296,6 +296,8 @@ def load_event_spec(name_or_path: str | Path | EventSpec) -> EventSpec:
     """A built-in spec by name (``door``, ``relocate``, ``kitchen``, ``kitchen-v0``) or a YAML path."""
     if isinstance(name_or_path, EventSpec):
         return name_or_path
+    if not str(name_or_path).strip():
+        raise RMError(f"no event spec given: name a built-in one ({', '.join(builtin_specs())}) or a YAML file")
     builtin = Path(__file__).parent / "specs" / f"{name_or_path}.yaml"
     if builtin.is_file():
         return EventSpec.from_yaml(builtin)
