@@ -271,6 +271,9 @@ def report(args) -> None:
     runs, chosen = leave_out_chosen(gather(Path(args.out), results, skipped), read_choices(CHOICES))
     runs, superseded = current(runs)
     skipped += chosen + superseded
+    skipped += [f"{r.shown}: final evaluation {r.final_value} (a policy gone non-finite): left out of every column"
+                for r in runs if not r.finite]
+    runs = [r for r in runs if r.finite]  # every column of a cell over the same seeds
     for r in runs:
         r.dataset = shown(ROWS.get(r.dataset, r.dataset))
     budget = {LABELS[m]: steps for m, (steps, _) in BUDGETS.items()}
