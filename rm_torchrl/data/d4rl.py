@@ -26,7 +26,9 @@ def _read(f, name: str, path: Path) -> np.ndarray:
 
 def _jumps(obs: np.ndarray) -> np.ndarray:
     """Per row but the last, whether the observation jumps to the next row (``_JUMP`` median steps at least)."""
-    steps = np.linalg.norm(np.diff(obs, axis=0), axis=1)
+    rows = torch.from_numpy(obs)  # torch's diff and norm use every core; numpy's one (1.1 s of 1M rows)
+    rows = rows if rows.is_floating_point() else rows.double()
+    steps = torch.linalg.vector_norm(rows[1:] - rows[:-1], dim=1).numpy()
     typical = (np.median(steps) if steps.size else 0.0) or 1e-12
     return steps > _JUMP * typical
 
@@ -133,18 +135,23 @@ def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
         raise RMError(f"{path}: every episode has a single step, so there are no transitions")
     rows = np.flatnonzero(keep)
     last = ends[rows + 1]
+    index = torch.from_numpy(rows)
+
+    def select(array: np.ndarray, shift: int = 0) -> torch.Tensor:  # torch's gather is parallel, numpy's is not
+        return torch.from_numpy(array).index_select(0, index + shift if shift else index).float()
+
     # The step carrying an episode's final terminal flag has no successor and is dropped: its
     # flag moves to the episode's last transition, which ends in that terminal state.
     terminated = torch.from_numpy(terminals[rows] | (last & terminals[rows + 1])).unsqueeze(-1)
     truncated = torch.from_numpy(last).unsqueeze(-1) & ~terminated
     td = TensorDict(
         {
-            "observation": torch.from_numpy(obs[rows]).float(),
-            "action": torch.from_numpy(actions[rows]).float(),
+            "observation": select(obs),
+            "action": select(actions),
             "episode": torch.from_numpy(episode[rows]).long(),
             "next": {
-                "observation": torch.from_numpy(obs[rows + 1]).float(),
-                "reward": torch.from_numpy(rewards[rows]).float().reshape(-1, 1),
+                "observation": select(obs, 1),
+                "reward": select(rewards).reshape(-1, 1),
                 "terminated": terminated,
                 "truncated": truncated,
                 "done": terminated | truncated,
