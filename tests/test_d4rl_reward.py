@@ -149,16 +149,19 @@ import sys, torch
 from rm_torchrl.train import load_recipe
 from rm_torchrl.train.data import PolicyInput
 from rm_torchrl.train.evaluate import make_eval_env
-recipe = load_recipe(None, ["dataset=door-human-v0", "method=iql"] + sys.argv[1:])
-env = make_eval_env(recipe, PolicyInput(["observation"], 39, 0, torch.zeros(39), torch.ones(39), None))
+dataset, dim, *overrides = sys.argv[1:]
+recipe = load_recipe(None, [f"dataset={dataset}", "method=iql"] + overrides)
+env = make_eval_env(recipe, PolicyInput(["observation"], int(dim), None, torch.zeros(int(dim)), torch.ones(int(dim)),
+                                        None))
 print(float(env.rollout(2)["next", "reward"].sum()))
 """
 
 
 @pytest.mark.parametrize("overrides, kept", [
-    (["eval.env=AdroitHandDoor-v1"], False),  # D4RLReward corrects the reward the notice is about
-    (["eval.env=AdroitHandDoor-v1", "eval.reward=env"], True),  # the v1 env's own reward: the notice holds
-    (["eval.env=AdroitHandDoor-v1", "+eval.env_kwargs.reward_type=sparse"], True),  # not corrected either
+    (["door-human-v0", "39", "eval.env=AdroitHandDoor-v1"], False),  # D4RLReward corrects what the notice is about
+    (["door-human-v0", "39", "eval.env=AdroitHandDoor-v1", "eval.reward=env"], True),  # the v1 env's own reward
+    (["door-human-v0", "39", "eval.env=AdroitHandDoor-v1", "+eval.env_kwargs.reward_type=sparse"], True),
+    (["kitchen-partial", "59"], False),  # not an Adroit env: the notice is not about it
 ])
 def test_gymnasium_robotics_notice_is_silenced_only_where_the_reward_is_corrected(overrides, kept):
     """gymnasium-robotics 1.4.2 prints its notice once, on import, so each case is a fresh process."""

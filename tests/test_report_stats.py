@@ -406,3 +406,11 @@ def test_a_seed_that_is_not_a_whole_number_is_one_line(tmp_path):
     recipe.write_text(recipe.read_text().replace("seed: 0", "seed: abc"))
     with pytest.raises(RMError, match=r"recipe.yaml: seed must be a whole number >= 0, got 'abc'"):
         load_runs([tmp_path])
+
+
+def test_the_performance_profile_spans_the_scores_own_range(tmp_path):
+    """Scores in 0-17 draw a profile over 0-17 (and a little more), not over 0-100."""
+    runs(tmp_path, "door-human-v0", "ours", [5.0, 17.0, 12.0])
+    runs(tmp_path, "door-human-v0", "iql", [1.0, 3.0, 2.0])
+    stats = aggregate(group_runs(load_runs([tmp_path])), reps=20)
+    assert stats.taus[0] == 0.0 and 17.0 < stats.taus[-1] < 18.0

@@ -260,7 +260,8 @@ def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
     taus, profiles = np.zeros(0), {}
     if pooled:
         values = np.concatenate([s.ravel() for s in pooled.values()])
-        taus = np.linspace(min(0.0, values.min()), max(100.0, values.max()), TAUS)
+        low, high = min(0.0, values.min()), values.max()  # the scores' own range (not 0-100 for data in 0-17)
+        taus = np.linspace(low, high + 0.05 * (high - low) if high > low else low + 1.0, TAUS)
         with _seeded():
             points, bands = library.create_performance_profile(
                 pooled, taus, custom_profile_func=profile, reps=reps, confidence_interval_size=CONFIDENCE)

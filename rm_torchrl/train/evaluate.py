@@ -62,7 +62,9 @@ def make_eval_env(recipe: Recipe, data: PolicyInput, device: torch.device | str 
     from rm_torchrl.envs.d4rl_reward import import_gymnasium_robotics
 
     task = reward_convention(recipe)[1]
-    gym.register_envs(import_gymnasium_robotics(quiet=task is not None))  # D4RLReward corrects what it warns of
+    # the notice is about the Adroit envs' rewards: not for other envs, nor where D4RLReward corrects them
+    adroit = recipe.eval.env.startswith("AdroitHand")
+    gym.register_envs(import_gymnasium_robotics(quiet=task is not None or not adroit))
     if render and num_envs:
         raise RMError("a rendering eval env is a single env: pass render or num_envs, not both")
     try:
