@@ -444,3 +444,11 @@ def test_a_signal_after_the_last_step_leaves_a_finished_run(tmp_path, dataset, m
     monkeypatch.setattr(trainer_module, "gradient_step", last_step_interrupted)
     run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=10"]), progress=False)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 10
+
+
+def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path, dataset, capsys):
+    """A source that cannot be read: one line, and no empty run folder holding only its lock."""
+    recipe = make_recipe(tmp_path, dataset)
+    assert main(["train", str(recipe), f"data.source={tmp_path / 'missing.hdf5'}", "--no-progress"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "runs" / "tiny-seed0").exists()

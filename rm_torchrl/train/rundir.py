@@ -69,7 +69,13 @@ class RunLock:
 
     def __exit__(self, *exc) -> None:
         if self.fd is not None:
-            os.close(self.fd)  # releases the flock; the file stays (harmless, recognised as the trainer's)
+            try:  # a run that wrote nothing (a bad source, say) leaves no folder behind; removed while still held
+                if os.listdir(self.path.parent) == [LOCK]:
+                    self.path.unlink()
+                    self.path.parent.rmdir()
+            except OSError:
+                pass
+            os.close(self.fd)  # releases the flock; a kept file stays (harmless, recognised as the trainer's)
             self.fd = None
 
 
