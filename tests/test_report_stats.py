@@ -414,3 +414,18 @@ def test_the_performance_profile_spans_the_scores_own_range(tmp_path):
     runs(tmp_path, "door-human-v0", "iql", [1.0, 3.0, 2.0])
     stats = aggregate(group_runs(load_runs([tmp_path])), reps=20)
     assert stats.taus[0] == 0.0 and 17.0 < stats.taus[-1] < 18.0
+
+
+def test_a_cells_and_a_methods_intervals_do_not_depend_on_other_runs_in_the_report(tmp_path):
+    """The same runs give the same CIs whatever else is reported beside them (another method, another dataset)."""
+    alone, crowded = tmp_path / "alone", tmp_path / "crowded"
+    for root in (alone, crowded):
+        runs(root, "door-human-v0", "ours", [5.0, 17.0, 12.0, 9.0])
+        runs(root, "door-human-v0", "iql", [1.0, 3.0, 2.0, 8.0])
+    runs(crowded, "door-human-v0", "bc", [0.0, 4.0, 1.0])
+    runs(crowded, "relocate-human", "bc", [1.0, 2.0, 0.5])
+    a, b = (aggregate(group_runs(load_runs([root])), reps=200) for root in (alone, crowded))
+    cell = {(c.dataset, c.method): c.iqm for c in b.cells}
+    for c in a.cells:
+        assert cell[(c.dataset, c.method)] == c.iqm, c
+    assert [i.p for i in a.improvement if i.y == "IQL"] == [i.p for i in b.improvement if i.y == "IQL"]

@@ -171,13 +171,16 @@ def profile(scores: np.ndarray, taus: np.ndarray) -> np.ndarray:
 
 
 def _estimates(library, scores: dict, func, reps: int) -> dict[str, list[Estimate]]:
-    if not scores:
-        return {}
-    with _seeded():
-        points, intervals = library.get_interval_estimates(scores, func, reps=reps,
-                                                           confidence_interval_size=CONFIDENCE)
-    return {k: [Estimate(float(v), float(lo), float(hi)) for v, lo, hi in
-                zip(np.atleast_1d(points[k]), *np.reshape(intervals[k], (2, -1)))] for k in scores}
+    """rliable's interval estimates, each entry of ``scores`` resampled on its own seeded generator: an entry's CI
+    is the same whatever other entries a report holds (one generator drawing for all in turn would tie them)."""
+    out = {}
+    for key, value in scores.items():
+        with _seeded():
+            points, intervals = library.get_interval_estimates({key: value}, func, reps=reps,
+                                                               confidence_interval_size=CONFIDENCE)
+        out[key] = [Estimate(float(v), float(lo), float(hi)) for v, lo, hi in
+                    zip(np.atleast_1d(points[key]), *np.reshape(intervals[key], (2, -1)))]
+    return out
 
 
 def _steps(runs: Iterable[Run]) -> str:
@@ -225,14 +228,8 @@ def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
         raise RMError(f"--reps must be a positive number of bootstrap resamples, got {reps}")
     library = _rliable()
     groups = [g for g in groups if g.scored]
-    by_size: dict[str, list[Group]] = {}
-    for g in groups:
-        by_size.setdefault(str(len(g.scored)), []).append(g)
-    found = _estimates(library, {n: np.array([[r.final_value for r in g.scored] for g in members]).T
-                                 for n, members in by_size.items()}, iqm, reps)
-    iqms = {(g.dataset, g.method): e for n, members in by_size.items() for g, e in zip(members, found[n])}
     cells = [Cell(g.dataset, g.method, len(g.scored), max(r.final_step for r in g.scored), g.metric,
-                  iqms[(g.dataset, g.method)]) for g in groups]
+                  cell_iqm([r.final_value for r in g.scored], reps)) for g in groups]
 
     kept, budget, notes = _comparable(groups)
     cover = {m: [d for d in budget if (d, m) in kept] for m in methods(groups)}
@@ -262,10 +259,11 @@ def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
         values = np.concatenate([s.ravel() for s in pooled.values()])
         low, high = min(0.0, values.min()), values.max()  # the scores' own range (not 0-100 for data in 0-17)
         taus = np.linspace(low, high + 0.05 * (high - low) if high > low else low + 1.0, TAUS)
-        with _seeded():
-            points, bands = library.create_performance_profile(
-                pooled, taus, custom_profile_func=profile, reps=reps, confidence_interval_size=CONFIDENCE)
-        profiles = {m: (points[m], *np.asarray(bands[m])) for m in pooled}
+        for m, scores in pooled.items():  # each method's band on its own generator, as in _estimates
+            with _seeded():
+                points, bands = library.create_performance_profile(
+                    {m: scores}, taus, custom_profile_func=profile, reps=reps, confidence_interval_size=CONFIDENCE)
+            profiles[m] = (points[m], *np.asarray(bands[m]))
     return Aggregates(reps, cells, overall, better, notes, taus, profiles)
 
 
