@@ -148,3 +148,37 @@ def data_origin(recipe: dict) -> str:
     data = recipe.get("data") or {}
     source, name = str(data.get("source") or ""), str(data.get("name") or "")
     return "generated" if source.startswith(GENERATED_PREFIX) or name.startswith("rmrl-") else "d4rl"
+
+
+def flat_recipe(recipe: dict, prefix: str = "") -> dict:
+    """A recipe dict as ``dotted.key -> value`` (an empty section stays one entry)."""
+    out = {}
+    for key, value in recipe.items():
+        path = f"{prefix}{key}"
+        out.update(flat_recipe(value, path + ".") if isinstance(value, dict) and value else {path: value})
+    return out
+
+
+#: Recipe entries that decide what a run learns (beside its seed): runs of one report cell should share them.
+LEARNING_KEYS = ("data.source", "data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints",
+                 "rm", "method", "network", "optim", "trainer.batch_size", "trainer.gamma", "trainer.tau",
+                 "trainer.normalize_obs")
+
+
+def learning_differences(recipes: list[dict]) -> list[str]:
+    """``key (v1, v2)`` for each of :data:`LEARNING_KEYS` on which ``recipes`` differ."""
+    flats = [flat_recipe(upgrade_recipe(r)) for r in recipes]
+    for f in flats:  # the same file read from two checkouts (an embedded file, ../shared) is the same data
+        if isinstance(f.get("data.source"), str):
+            f["data.source"] = f["data.source"].replace("\\", "/").rsplit("/", 1)[-1]
+    algorithms = {f.get("method.name") for f in flats}
+    keys = sorted({k for f in flats for k in f if any(k == p or k.startswith(p + ".") for p in LEARNING_KEYS)
+                   and all(k in g for g in flats)  # an entry an older layout lacks took the default it now names
+                   and not (k.count(".") >= 2 and k.startswith("method.") and k.split(".")[1] not in algorithms)})
+    out = []
+    for key in keys:
+        values = list(dict.fromkeys(repr(f.get(key)) for f in flats))
+        if len(values) > 1:
+            out.append(f"{key} ({', '.join(values)})")
+    return out
+

@@ -429,3 +429,12 @@ def test_a_cells_and_a_methods_intervals_do_not_depend_on_other_runs_in_the_repo
     for c in a.cells:
         assert cell[(c.dataset, c.method)] == c.iqm, c
     assert [i.p for i in a.improvement if i.y == "IQL"] == [i.p for i in b.improvement if i.y == "IQL"]
+
+
+def test_a_cell_whose_runs_learn_differently_is_noted(tmp_path):
+    runs(tmp_path, "door-human-v0", "ours", [5.0, 17.0])
+    recipe = next(tmp_path.glob("*-seed1")) / "recipe.yaml"
+    recipe.write_text(recipe.read_text().replace("alpha: 0.5", "alpha: 1.0"))
+    notes = aggregate(group_runs(load_runs([tmp_path])), reps=20).notes
+    assert any(n.startswith("Ours on door-human-v0: its runs differ in data.alpha (0.5, 1.0), yet are one cell")
+               for n in notes), notes

@@ -37,7 +37,7 @@ import numpy as np
 from rm_torchrl.errors import RMError, read_json, read_yaml
 from rm_torchrl.run_format import (DISPLAY, EVAL_COLUMNS, EVAL_FILE, FAILED_FILE, LEGACY_REWARD, LOGS_DIR,  # noqa: F401
                                    RECIPE_FILE, REFINE_FILE, REUSED, REWARD_COLUMN, STAGES, data_origin, display_label,
-                                   run_identity, run_label)
+                                   learning_differences, run_identity, run_label)
 
 #: Table 1 column order (the paper's), other labels go between IQL/CQL and Ours.
 METHOD_ORDER = ("BC", "BCQ", "IQL", "CQL")
@@ -435,6 +435,10 @@ class Group:
     def scored(self) -> list[Run]:
         """The seeds whose final evaluation is finite: the only ones the statistics use."""
         return [r for r in self.runs if r.finite]
+
+    def differences(self) -> list[str]:
+        """The learning settings (data source, alpha, rates, ...) on which the cell's runs differ."""
+        return learning_differences([r.recipe for r in self.runs])
 
     @property
     def nonfinite(self) -> list[Run]:

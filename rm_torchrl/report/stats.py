@@ -232,6 +232,8 @@ def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
                   cell_iqm([r.final_value for r in g.scored], reps)) for g in groups]
 
     kept, budget, notes = _comparable(groups)
+    notes += [f"{g.method} on {g.dataset}: its runs differ in {'; '.join(d)}, yet are one cell (give them another "
+              "data.name to report them apart)" for g in groups if (d := g.differences())]
     cover = {m: [d for d in budget if (d, m) in kept] for m in methods(groups)}
     cover = {m: names for m, names in cover.items() if names}
     pooled = {m: _matrix(kept, m, names) for m, names in cover.items()}

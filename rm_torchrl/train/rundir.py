@@ -22,7 +22,7 @@ from rm_torchrl import files
 from rm_torchrl.errors import RMError
 from rm_torchrl.files import WriteFailed
 from rm_torchrl.run_format import (CHECKPOINT, EVAL_FILE, FAILED_FILE as FAILED, LOCK_FILE as LOCK,
-                                   TRAINER_FILES, temp_name, upgrade_recipe)
+                                   TRAINER_FILES, flat_recipe, temp_name, upgrade_recipe)
 
 #: Recipe entries a resumed run must share with its checkpoint: what it learns from, the budget its schedules
 #: are built over (a longer budget is a new run) and how it is evaluated. Logging, checkpointing, threads,
@@ -137,18 +137,10 @@ def load_checkpoint(path: Path) -> dict:
     return state
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in d.items():
-        path = f"{prefix}{key}"
-        out.update(_flat(value, path + ".") if isinstance(value, dict) and value else {path: value})
-    return out
-
-
 def recipe_changes(old: dict, new: dict, keys=FROZEN, added=lambda value: True) -> list[str]:
     """``key: old -> new`` for every entry under ``keys`` (default :data:`FROZEN`) that differs between two
     recipe dicts. A key ``old`` lacks (an option added since) counts where ``added(its value in new)``."""
-    a, b = _flat(old), _flat(new)
+    a, b = flat_recipe(old), flat_recipe(new)
     wanted = [k for k in sorted(set(a) | set(b)) if any(k == f or k.startswith(f + ".") for f in keys)
               and (k in a or added(b[k]))]
     return [f"{k}: {_shown(a, k)} -> {_shown(b, k)}" for k in wanted if a.get(k) != b.get(k)]
