@@ -422,3 +422,30 @@ def test_write_atomic_whose_clean_up_fails_still_raises_write_failed(tmp_path, m
     monkeypatch.setattr(files.Path, "unlink", refuse)
     with pytest.raises(files.WriteFailed, match="Permission denied"):
         files.write_atomic(tmp_path / "x.txt", "data")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--out", "{file}"], "--out {file} is a file: give a folder"),
+    (["--seed", "4294967295", "--seeds", "2"], "--seed + --seeds - 1 (the last seed, with --seeds 2) must be an "
+                                               "integer in [0, 2**32-1], got 4294967296"),
+])
+def test_the_demo_refuses_before_any_run(capsys, tmp_path, argv, message):
+    a_file = tmp_path / "afile"
+    a_file.write_text("mine")
+    argv = [a.replace("{file}", str(a_file)) for a in argv]
+    code, _, err = run(capsys, "demo", *(argv if "--out" in argv else [*argv, "--out", str(tmp_path / "d")]))
+    assert code == 2 and last_line(err) == "rmrl demo: error: " + message.replace("{file}", str(a_file))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_a_video_path_that_cannot_be_written_is_refused_before_the_evaluation(tmp_path, monkeypatch):
+    from rm_torchrl.train import video
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(video.tempfile, "NamedTemporaryFile", refuse)
+    from rm_torchrl.errors import RMError
+
+    with pytest.raises(RMError, match=r"cannot write .*clip.mp4: Permission denied"):
+        video.check_video_path(tmp_path / "clip.mp4")

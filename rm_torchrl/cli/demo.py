@@ -154,8 +154,12 @@ def run(args) -> int:
     if args.steps < 1 or args.seeds < 1 or args.episodes < 1:
         raise RMError(f"--steps, --seeds and --episodes must be positive, got {args.steps}, {args.seeds} "
                       f"and {args.episodes}")
-    if args.seed < 0:
-        raise RMError(f"--seed must be >= 0, got {args.seed}")
+    from rm_torchrl.train.config import check_seed
+
+    check_seed(args.seed, "--seed")
+    check_seed(args.seed + args.seeds - 1, f"--seed + --seeds - 1 (the last seed, with --seeds {args.seeds})")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise RMError(f"--out {args.out} is a file: give a folder")
     if args.dataset and not Path(args.dataset).is_file():
         raise RMError(f"dataset file {args.dataset} does not exist")
     stray = [o for o in args.overrides if "=" not in o]

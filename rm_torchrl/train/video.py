@@ -9,6 +9,7 @@ when complete.
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +80,11 @@ def check_video_path(path) -> Path:
         raise RMError(f"cannot write {path}: {path.parent} is not a directory")
     if path.is_dir():
         raise RMError(f"cannot write {path}: it is a directory")
+    try:  # a read-only folder is found now, not after the evaluation
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as err:
+        raise RMError(f"cannot write {path}: {err.strerror}") from None
     return path
 
 
