@@ -343,3 +343,15 @@ def test_reading_into_a_log_file_prints_no_per_episode_progress(minari_cache, ca
     load_minari("tiny/quiet-v0")
     out, err = capfd.readouterr()
     assert "episode num" not in out + err
+
+
+def test_minari_datasets_path_pointing_at_a_file_is_one_line(tmp_path, monkeypatch, capsys):
+    from rm_torchrl.cli.main import main
+
+    a_file = tmp_path / "afile"
+    a_file.write_text("mine")
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(a_file))
+    assert main(["refine", "--dataset", "rmrl/x-v0", "--events", "door", "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err == (f"rmrl: error: MINARI_DATASETS_PATH={a_file} is a file; point it at a folder "
+                                       "(Minari keeps its datasets there)\n")
+    assert a_file.read_text() == "mine"

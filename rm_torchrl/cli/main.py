@@ -193,9 +193,17 @@ def _check_mujoco_gl() -> None:
                       "unset it, or set MUJOCO_GL=egl on a machine without a display") from None
 
 
+def _check_minari_path() -> None:
+    """``MINARI_DATASETS_PATH`` names the folder Minari keeps datasets in: a file there fails deep in its readers."""
+    path = os.environ.get("MINARI_DATASETS_PATH")
+    if path and os.path.exists(path) and not os.path.isdir(path):
+        raise RMError(f"MINARI_DATASETS_PATH={path} is a file; point it at a folder (Minari keeps its datasets there)")
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         _check_mujoco_gl()
+        _check_minari_path()
     except RMError as err:
         print(f"rmrl: error: {err}", file=sys.stderr)
         return 2
