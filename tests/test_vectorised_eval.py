@@ -119,3 +119,23 @@ def test_rendering_is_a_single_env():
     recipe, inputs = toy_recipe(2, 5)
     with pytest.raises(RMError, match="render or num_envs"):
         make_eval_env(recipe, inputs, render=(64, 64), num_envs=2)
+
+
+def test_more_episodes_than_one_batch_run_in_batches_and_match_the_sequential_ones(monkeypatch):
+    """Episodes beyond MAX_BATCH run in further batches of the same envs (never one env per episode), each
+    episode starting where the sequential evaluation's does."""
+    import rm_torchrl.train.evaluate as evaluate_module
+
+    monkeypatch.setattr(evaluate_module, "MAX_BATCH", 3)
+    recipe, inputs = toy_recipe(7, 20)
+    policy = linear_policy(3, 2)
+    sequential = evaluate(recipe, inputs, policy, False)
+    vectorised = evaluate(recipe, inputs, policy, True)
+    assert len(vectorised["episode_returns"]) == 7
+    assert vectorised["episode_lengths"] == sequential["episode_lengths"]
+    np.testing.assert_allclose(vectorised["episode_returns"], sequential["episode_returns"], rtol=1e-5, atol=1e-5)
+    evaluator = evaluate_module.Evaluator(recipe, inputs, policy)
+    try:
+        assert evaluator.env.batch_size == (3,)
+    finally:
+        evaluator.env.close()

@@ -23,6 +23,8 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
 
+#: Most envs an evaluation steps at once (MuJoCo envs take about 9 MB each): more episodes run in batches of it.
+MAX_BATCH = 50
 #: D4RL normalisation: score = 100 * (return - low) / (high - low).
 SCORE_RANGES = {
     "door": (-56.512833, 2880.5693087298737),
@@ -144,17 +146,18 @@ def _render_check(recipe: Recipe, base):
     return base
 
 
-def seed_like_sequential(env: TransformedEnv, seed: int) -> None:
-    """Seed a batch from :func:`make_eval_env` so its episode i starts as the sequential evaluation's episode i.
+def seed_like_sequential(env: TransformedEnv, seed: int, first: int = 0) -> None:
+    """Seed a batch from :func:`make_eval_env` so its episode i starts as the sequential evaluation's episode
+    ``first + i``.
 
     The sequential env is reset with ``seed`` once, then once more before each episode; sub-env i is
-    reset with ``seed`` and then i times, so its next reset draws what the sequential env's i-th
-    episode drew. Envs whose steps draw from the generator too (FrankaKitchen-v1's observation
+    reset with ``seed`` and then ``first + i`` times, so its next reset draws what the sequential env's
+    episode ``first + i`` drew. Envs whose steps draw from the generator too (FrankaKitchen-v1's observation
     noise) start from the same simulator state, with another noise stream.
     """
     for i, sub in enumerate(env.base_env._env.envs):
         sub.reset(seed=seed)
-        for _ in range(i):
+        for _ in range(first + i):
             sub.reset()
 
 
@@ -190,14 +193,24 @@ class Evaluator:
     def __init__(self, recipe: Recipe, data: PolicyInput, policy, device: torch.device | str = "cpu"):
         self.recipe, self.policy = recipe, policy
         self.vectorised = recipe.eval.vectorised
-        self.env = make_eval_env(recipe, data, device, num_envs=recipe.eval.episodes if self.vectorised else None)
+        batch = min(recipe.eval.episodes, MAX_BATCH)
+        self.env = make_eval_env(recipe, data, device, num_envs=batch if self.vectorised else None)
         self.track_rm = data.events is not None
         self.reward = reward_convention(recipe)[0]
 
     def _batch(self) -> tuple[list[float], list[int], torch.Tensor | None]:
-        seed_like_sequential(self.env, self.recipe.seed)
-        out = run_episodes(self.env, self.policy, self.recipe.eval.max_steps, self.track_rm)
-        return out["returns"].tolist(), out["lengths"].tolist(), out["rm_state"]
+        """The episodes in batches of at most :data:`MAX_BATCH` envs (the last one's surplus envs discarded)."""
+        returns, lengths, finals = [], [], []
+        episodes = self.recipe.eval.episodes
+        for first in range(0, episodes, MAX_BATCH):
+            keep = min(MAX_BATCH, episodes - first)
+            seed_like_sequential(self.env, self.recipe.seed, first)
+            out = run_episodes(self.env, self.policy, self.recipe.eval.max_steps, self.track_rm)
+            returns += out["returns"][:keep].tolist()
+            lengths += out["lengths"][:keep].tolist()
+            if out["rm_state"] is not None:
+                finals.append(out["rm_state"][:keep])
+        return returns, lengths, (torch.cat(finals) if finals else None)
 
     def _sequential(self) -> tuple[list[float], list[int], torch.Tensor | None]:
         self.env.set_seed(self.recipe.seed)
