@@ -544,3 +544,21 @@ def test_the_demo_summary_leaves_out_nan_seeds_and_claims_only_what_its_ci_shows
     assert "Left out (non-finite final evaluation): demo-ours-seed2 (final score nan)." in text
     assert "These seeds do not separate ours from IQL at this budget: P(ours > IQL) = " in text  # 2 against 3 seeds
     assert "over 2 and 3 seeds" in text
+
+
+def test_a_users_folder_with_the_demos_runs_beside_theirs_reports_one_dataset(tmp_path):
+    """`rmrl report runs/` over the demo's runs (runs/demo/runs/demo-*) and the user's: the demo's are door-human-v0
+    runs (their recipe says so), never a dataset called "demo"; --dataset-from source reads the same."""
+    from rm_torchrl.cli.main import main
+
+    source = "/somewhere/rm_torchrl/data/d4rl_files/door-human-v0.hdf5"
+    for seed in (0, 1):
+        write_run(tmp_path / "runs" / "demo" / "runs", "demo-ours", seed, "ours", True, "door", {2000: 5.0 + seed},
+                  source=source, dataset="door-human-v0")
+    write_run(tmp_path / "runs", "door-human-v0-ours", 3, "ours", True, "door", {2000: 9.0}, source=source,
+              dataset="door-human-v0")
+    for extra in ([], ["--dataset-from", "source"]):
+        out = tmp_path / f"report{len(extra)}"
+        assert main(["report", str(tmp_path / "runs"), "--out", str(out), *extra]) == 0
+        text = (out / "results.md").read_text()
+        assert "| door-human-v0 |" in text and "| demo" not in text
