@@ -434,3 +434,14 @@ def test_names_with_spaces_and_lambdas_still_work():
 def test_an_empty_event_spec_name_says_what_to_give():
     with pytest.raises(RMError, match=r"^no event spec given: name a built-in one \(door, .*\) or a YAML file$"):
         load_event_spec("")
+
+
+def test_an_event_that_never_happens_is_named():
+    td, spec = small_data(n=3)  # events 1 and 2 happen, the third never does
+    with pytest.raises(RMError, match=rf"every event order scores 0: {spec.names[2]} never happen\(s\) in the data"):
+        refine(td, spec)
+
+
+def test_an_unsigned_exponent_gets_a_hint():
+    with pytest.raises(RMError, match=r"YAML reads an exponent without its sign as text: write 1.0e\+9"):
+        EventSpec.from_dict([{"name": "a", "key": "observation", "index": 0, "op": ">", "value": "1.0e9"}])

@@ -89,7 +89,9 @@ class Event:
             raise RMError(f"{where}: op must be one of {list(_OPS)}, got {op!r}")
         value = d["value"]
         if not _is_number(value):
-            raise RMError(f"{where}: 'value' must be a finite number, got {value!r}")
+            hint = (" (YAML reads an exponent without its sign as text: write 1.0e+9)"
+                    if isinstance(value, str) and re.fullmatch(r"[-+]?[0-9.]+[eE][0-9]+", value) else "")
+            raise RMError(f"{where}: 'value' must be a finite number, got {value!r}{hint}")
         if "index" in d and "slice" in d:
             raise RMError(f"{where}: give either 'index' or 'slice', not both")
         index = d.get("index")

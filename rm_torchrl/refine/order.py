@@ -166,6 +166,11 @@ class EventOrder(DatasetTransform):
                 raise RMError("every event order scores 0 under the given constraints: they form a cycle, "
                               "so no order satisfies them: " + " < ".join(self._name(k) for k in cycle))
             sizes = {group_name(self.event_names, a, b): c for (a, b), c in self.group_sizes.items()}
+            never = [self._name(k) for k in range(1, n + 1) if not any(b == k for _, b in self.group_sizes)]
+            if never:
+                raise RMError(f"every event order scores 0: {', '.join(never)} never happen(s) in the data (no "
+                              f"sub-trajectory reaches it), so no order of all events has a non-empty group at each "
+                              f"step; check the event spec against the data; group sizes: {sizes}")
             raise RMError(
                 "every event order scores 0: no order of all events has a non-empty group at each "
                 f"step{' under the given constraints' if self.constraints else ''}; group sizes: {sizes}"
