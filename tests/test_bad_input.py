@@ -445,3 +445,12 @@ def test_an_event_that_never_happens_is_named():
 def test_an_unsigned_exponent_gets_a_hint():
     with pytest.raises(RMError, match=r"YAML reads an exponent without its sign as text: write 1.0e\+9"):
         EventSpec.from_dict([{"name": "a", "key": "observation", "index": 0, "op": ">", "value": "1.0e9"}])
+
+
+def test_an_unquoted_non_ascii_override_says_to_quote_it():
+    from rm_torchrl.train.recipe import load_recipe
+
+    with pytest.raises(RMError, match=r"^override 'data.name=dörr': Hydra reads unquoted values as ASCII; quote the "
+                                      r"value, as in \"data.name='dörr'\"$"):
+        load_recipe(None, ["dataset=door-human-v0", "method=ours", "data.name=dörr"])
+    assert load_recipe(None, ["dataset=door-human-v0", "method=ours", "data.name='dörr'", "name=x"]).data.name == "dörr"

@@ -120,6 +120,11 @@ def compose_recipe(path=None, overrides=()) -> DictConfig:
             key = unknown.group(1)
             raise RMError(f"recipe: unknown key {key}; allowed under {key.rpartition('.')[0] or 'top level'}: "
                           f"{_allowed(key)}") from None
+        plain = next((o for o in overrides if not str(o).isascii() and "'" not in str(o) and '"' not in str(o)), None)
+        if "LexerNoViableAlt" in str(err) and plain:
+            key, _, value = str(plain).partition("=")
+            raise RMError(f"override {plain!r}: Hydra reads unquoted values as ASCII; quote the value, as in "
+                          f"\"{key}='{value}'\"") from None
         raise RMError(f"recipe {path.name}: {_one_line(err)}") from None
     except yaml.YAMLError as err:  # in the recipe or in one of the options it composes
         raise RMError(f"recipe {path.name} (or an option it composes) is not valid YAML: {yaml_problem(err)}") from None
