@@ -34,6 +34,8 @@ from rm_torchrl.report.runs import OURS, Group, Run, datasets, method_option, me
 
 #: bootstrap resamples: 2,000 take 0.7 s for Table 1's 66 runs (and importing rliable 1-2 s)
 REPS = 2000
+#: The fewest resamples a report takes: a 95% percentile interval needs resamples in its 2.5% tails.
+MIN_REPS = 50
 CONFIDENCE = 0.95
 SEED = 0
 #: thresholds of the performance profile
@@ -224,8 +226,8 @@ def _matrix(kept: dict, method: str, names: list[str]) -> np.ndarray:
 
 def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
     """The cells' IQMs, each method's IQM over datasets, P(Ours > baseline), the performance profile."""
-    if reps < 1:
-        raise RMError(f"--reps must be a positive number of bootstrap resamples, got {reps}")
+    if reps < MIN_REPS:  # with fewer, a percentile interval's 2.5% tails hold no resample and can miss the estimate
+        raise RMError(f"--reps must be at least {MIN_REPS} bootstrap resamples for a 95% interval, got {reps}")
     library = _rliable()
     groups = [g for g in groups if g.scored]
     cells = [Cell(g.dataset, g.method, len(g.scored), max(r.final_step for r in g.scored), g.metric,
