@@ -28,9 +28,9 @@ TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, FAIL
 #: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
 #: Run statuses a multirun leaves alone, and why (``new`` and ``resumable`` runs train, ``finished`` ones are
 #: skipped): :func:`rm_torchrl.train.rundir.run_status`.
-LEFT_ALONE = {"failed": "failed before (see its failed.json); not retried",
-              "kept": "holds evaluations but no checkpoint; kept as it is, not retrained",
-              "unreadable": "its checkpoint cannot be read; left as it is"}
+LEFT_ALONE = {"failed": "failed before (see failed.json): not retried",
+              "kept": "with evaluations but no checkpoint: kept, not retrained",
+              "unreadable": "with a checkpoint that cannot be read: left as it is"}
 EVAL_COLUMNS = ("step", "return_mean", "return_std", "score", "success_rate", "events_mean", "episodes", "reward")
 REWARD_COLUMN = "reward"  # the one text column of eval.csv
 #: What a run written before eval.csv had a reward column was evaluated with: the env's own reward.

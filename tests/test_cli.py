@@ -420,6 +420,8 @@ def test_demo_keeps_the_users_runs(tmp_path):
     assert _files(runs) == written
     longer = _demo(project, *[("40" if a == "20" else a) for a in DEMO])  # never extends the finished runs
     assert longer.returncode == 2 and "(eval.every: 10 -> 20; trainer.steps: 20 -> 40)" in longer.stderr
+    episodes = _demo(project, *[("2" if a == "1" and DEMO[i - 1] == "--episodes" else a) for i, a in enumerate(DEMO)])
+    assert episodes.returncode == 2 and "(eval.episodes: 1 -> 2)" in episodes.stderr
     assert _files(runs) == written
 
 

@@ -101,7 +101,7 @@ def test_a_diverging_run_stops_at_the_first_non_finite_loss_and_is_not_reported(
     assert "failed: step" in capsys.readouterr().err  # the only run is failed: nothing to score
     assert main(["train", str(recipe), "optim.lr_critic=1.0e+30", "optim.lr_value=1.0e+30", "trainer.steps=200",
                  "--multirun"]) == 2
-    assert "1 run(s) failed before (see its failed.json); not retried" in capsys.readouterr().err
+    assert "1 run(s) failed before (see failed.json): not retried" in capsys.readouterr().err
 
 
 # --- resume --------------------------------------------------------------------------------------
@@ -154,7 +154,7 @@ def test_a_run_holding_evaluations_without_its_checkpoint_is_never_retrained(tmp
     assert err == (f"rmrl train: error: run directory {run_dir} holds evaluations (eval.csv) but no checkpoint: it can "
                    "neither continue nor be trained again in place; pick another name or seed (or move it away)\n")
     run_grid([(str(recipe), ["trainer.steps=10", *again])], jobs=1)
-    assert "1 run(s) holds evaluations but no checkpoint; kept as it is, not retrained" in capsys.readouterr().err
+    assert "1 run(s) with evaluations but no checkpoint: kept, not retrained" in capsys.readouterr().err
     assert {p.relative_to(run_dir): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
 
 
@@ -452,3 +452,17 @@ def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path, dataset, cap
     assert main(["train", str(recipe), f"data.source={tmp_path / 'missing.hdf5'}", "--no-progress"]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not (tmp_path / "runs" / "tiny-seed0").exists()
+
+
+def test_one_unreadable_checkpoint_does_not_stop_a_grid(tmp_path, dataset, capsys):
+    """The grid trains the others and names the run whose checkpoint cannot be read, leaving it as it is."""
+    from rm_torchrl.cli.train import run_grid
+
+    recipe = make_recipe(tmp_path, dataset)
+    broken = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10", "seed=1"]), progress=False)
+    (broken / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    run_grid([(str(recipe), ["trainer.steps=20", f"seed={k}"]) for k in range(3)], jobs=1)
+    assert "1 run(s) with a checkpoint that cannot be read: left as it is" in capsys.readouterr().err
+    for k in (0, 2):
+        assert torch.load(tmp_path / "runs" / f"tiny-seed{k}" / "checkpoint.pt", weights_only=True)["step"] == 20
+    assert (broken / "checkpoint.pt").read_bytes() == b"not a checkpoint"
