@@ -454,3 +454,16 @@ def test_an_unquoted_non_ascii_override_says_to_quote_it():
                                       r"value, as in \"data.name='dörr'\"$"):
         load_recipe(None, ["dataset=door-human-v0", "method=ours", "data.name=dörr"])
     assert load_recipe(None, ["dataset=door-human-v0", "method=ours", "data.name='dörr'", "name=x"]).data.name == "dörr"
+
+
+def test_a_spec_for_another_observation_layout_is_named():
+    """door's events read a 39-value observation: 60-value data (kitchen's) is refused by name, not labelled."""
+    from tensordict import TensorDict
+
+    td = TensorDict({"observation": torch.zeros(4, 60)}, batch_size=[4])
+    with pytest.raises(RMError, match=r"^event spec door is for 39-value observations, but the data's observation "
+                                      r"has 60: its events are another env's"):
+        load_event_spec("door")(td)
+    assert load_event_spec("kitchen-v0")(td).shape == (4, 4)
+    with pytest.raises(RMError, match="observation_size must be a positive integer"):
+        EventSpec.from_dict({"events": [GOOD], "observation_size": "big"})

@@ -221,6 +221,8 @@ class EventSpec:
     events: list = field(default_factory=list)
     names: list[str] = field(default_factory=list)
     source: str = "<python>"
+    #: the width of the flat ``observation`` the events index (None: any); data of another width is refused by name
+    observation_size: int | None = None
 
     def __post_init__(self):
         if not self.events:
@@ -252,6 +254,11 @@ class EventSpec:
         return out
 
     def __call__(self, obs: TensorDictBase) -> torch.Tensor:
+        flat = obs.get("observation", None) if self.observation_size else None
+        if isinstance(flat, torch.Tensor) and flat.shape[-1] != self.observation_size:
+            raise RMError(f"event spec {Path(self.source).stem} is for {self.observation_size}-value observations, but the "
+                          f"data's observation has {flat.shape[-1]}: its events are another env's; give the spec of "
+                          "this data's env (built-in: " + ", ".join(builtin_specs()) + ")")
         cols, features = [], {}
         for name, ev in zip(self.names, self.events):
             if isinstance(ev, Event):
@@ -273,12 +280,16 @@ class EventSpec:
             data = {"events": data}
         if not isinstance(data, dict) or "events" not in data:
             raise RMError(f"event spec {source}: expected a mapping with an 'events' list")
-        unknown = set(data) - {"events", "description"}
+        unknown = set(data) - {"events", "description", "observation_size"}
         if unknown:
-            raise RMError(f"event spec {source}: unknown top-level key(s) {sorted(unknown)}; allowed: events, description")
+            raise RMError(f"event spec {source}: unknown top-level key(s) {sorted(unknown)}; allowed: events, "
+                          "description, observation_size")
         if not isinstance(data["events"], list):
             raise RMError(f"event spec {source}: 'events' must be a list")
-        return cls([Event.from_dict(d, i) for i, d in enumerate(data["events"])], source=source)
+        size = data.get("observation_size")
+        if size is not None and not (_is_int(size) and size > 0):
+            raise RMError(f"event spec {source}: observation_size must be a positive integer, got {size!r}")
+        return cls([Event.from_dict(d, i) for i, d in enumerate(data["events"])], source=source, observation_size=size)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "EventSpec":

@@ -170,7 +170,8 @@ class EventOrder(DatasetTransform):
             if never:
                 raise RMError(f"every event order scores 0: {', '.join(never)} never happen(s) in the data (no "
                               f"sub-trajectory reaches it), so no order of all events has a non-empty group at each "
-                              f"step; check the event spec against the data; group sizes: {sizes}")
+                              f"step{' under the given constraints' if self.constraints else ''}; check the event "
+                              f"spec against the data; group sizes: {sizes}")
             raise RMError(
                 "every event order scores 0: no order of all events has a non-empty group at each "
                 f"step{' under the given constraints' if self.constraints else ''}; group sizes: {sizes}"
