@@ -220,8 +220,28 @@ def test_failed_download_is_an_rm_error(minari_cache, monkeypatch, dataset_id, d
         raise ConnectionError("network is unreachable")
 
     monkeypatch.setattr(minari, "download_dataset", offline)
+    monkeypatch.setattr("socket.getaddrinfo", lambda *args: [])  # the remote's name resolves; the download fails
     with pytest.raises(RMError, match=r"could not download.*network is unreachable.*load offline: tiny/flat-v0"):
         load_minari(dataset_id, download=download)
+
+
+def test_a_remote_that_cannot_be_resolved_is_said_at_once(minari_cache, monkeypatch):
+    """No retries for half a minute when the machine cannot even resolve the hub's name."""
+    import socket
+
+    _write_dataset("tiny/flat-v0")
+
+    def unresolved(*args):
+        raise socket.gaierror(-2, "Name or service not known")
+
+    def never(*args, **kwargs):
+        raise AssertionError("no download is tried")
+
+    monkeypatch.setattr("socket.getaddrinfo", unresolved)
+    monkeypatch.setattr(minari, "download_dataset", never)
+    with pytest.raises(RMError, match=r"could not download Minari dataset 'D4RL/door/human-v2': huggingface.co cannot "
+                                      r"be resolved .*load offline: tiny/flat-v0"):
+        load_minari("D4RL/door/human-v2")
 
 
 def test_single_episode_dataset_is_an_rm_error(minari_cache):

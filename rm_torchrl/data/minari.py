@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -47,6 +48,8 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
         )
     if use_local:
         _check_readable(dataset_id, local[dataset_id])
+    else:
+        _check_reachable(dataset_id, local)
     with tempfile.TemporaryDirectory() as root, fixed_minari_reader():
         try:
             buffer = MinariExperienceReplay(
@@ -120,6 +123,20 @@ def _to_float32(value):
     if isinstance(value, TensorDictBase):
         return value.apply(_to_float32)
     return value.to(torch.float32) if value.is_floating_point() else value
+
+
+#: Where Minari's remote datasets live (its default remote, on the Hugging Face hub).
+REMOTE_HOST = "huggingface.co"
+
+
+def _check_reachable(dataset_id: str, local: dict) -> None:
+    """A machine that cannot even resolve the remote's name is told so at once (the hub's client would spend
+    half a minute on retries first)."""
+    try:
+        socket.getaddrinfo(REMOTE_HOST, 443)
+    except OSError as err:
+        raise RMError(f"could not download Minari dataset {dataset_id!r}: {REMOTE_HOST} cannot be resolved ({err}); "
+                      f"datasets in the local cache {_cache_dir()} load offline: {_names(local)}") from None
 
 
 def _cache_dir() -> str:
