@@ -449,3 +449,31 @@ def test_a_video_path_that_cannot_be_written_is_refused_before_the_evaluation(tm
 
     with pytest.raises(RMError, match=r"cannot write .*clip.mp4: Permission denied"):
         video.check_video_path(tmp_path / "clip.mp4")
+
+
+def test_an_interrupt_while_the_previous_output_is_removed_says_the_new_one_is_whole(tmp_path, monkeypatch):
+    """SIGTERM during --overwrite's last clean-up: the new output is in place, the old one's leftovers go, and the
+    message says so (not "nothing was written")."""
+    import torch
+    from tensordict import TensorDict
+
+    from rm_torchrl.cli.main import Terminated
+    from rm_torchrl.data import store
+
+    out = tmp_path / "out"
+    store.write_refined(out, TensorDict({"x": torch.zeros(4)}, [4]), {"version": 1})
+    real, calls = store.shutil.rmtree, {"old": 0}
+
+    def interrupted_at_the_end(path, *args, **kwargs):
+        if Path(path).name == ".out.old":
+            calls["old"] += 1
+            if calls["old"] == 2:  # the first clears a stale copy before the swap, the second the previous output
+                raise Terminated
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(store.shutil, "rmtree", interrupted_at_the_end)
+    with pytest.raises(Terminated) as caught:
+        store.write_refined(out, TensorDict({"x": torch.ones(4)}, [4]), {"version": 2}, overwrite=True)
+    assert caught.value.message == f"interrupted after the output was written: {out} holds the new result, whole"
+    assert json.loads((out / "report.json").read_text()) == {"version": 2}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -99,8 +99,12 @@ def run(args) -> int:
     refined, report = refine_with_progress(data, spec, opts["alpha"], opts["constraints"], reuse=opts["reuse"])
     meta = {"dataset": opts["dataset"], "episode_ends": opts["episode_ends"], **report.to_dict()}
     out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
-    print(report.table())
-    print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
+    try:
+        print(report.table())
+        print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
+    except KeyboardInterrupt as err:  # the output is complete: say so, not "nothing was written"
+        err.message = f"interrupted after the output was written: {out} holds the new result, whole"
+        raise
     if args.minari_name:
         dataset_id = export_refined_minari(refined, report.to_dict(), args.minari_name, str(opts["events"]), spec.names,
                                            source=str(opts["dataset"]), overwrite=args.overwrite_minari)

@@ -280,7 +280,12 @@ def write_refined(out: str | Path, data: TensorDictBase, report: dict, overwrite
         if old.exists() and not out.exists():
             os.replace(old, out)
         raise
-    shutil.rmtree(old, ignore_errors=True)
+    try:
+        shutil.rmtree(old, ignore_errors=True)
+    except KeyboardInterrupt as err:  # SIGINT/SIGTERM now: the new output is in place; finish removing the old one
+        shutil.rmtree(old, ignore_errors=True)
+        err.message = f"interrupted after the output was written: {out} holds the new result, whole"
+        raise
     return out
 
 
