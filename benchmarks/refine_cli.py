@@ -14,33 +14,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
-import numpy as np
-
-from rm_torchrl.data.synthetic import make_door_like
+from rm_torchrl.data.synthetic import write_door_like_hdf5
 
 READ = """import sys, h5py, torch, tensordict, torchrl
 with h5py.File(sys.argv[1], "r") as f:
     arrays = {k: f[k][()] for k in f}
 """
 READ_ENVS = READ.replace("torchrl\n", "torchrl, torchrl.envs\n")
-
-
-def write_file(path: Path, transitions: int) -> None:
-    """A D4RL-layout file: episodes of 200 transitions, each with its final observation as a step of its own."""
-    td = make_door_like(transitions, episode_length=200, seed=0)
-    obs, nxt, act = td["observation"].numpy(), td["next", "observation"].numpy(), td["action"].numpy()
-    ends = np.flatnonzero(td["next", "truncated"].squeeze(-1).numpy())
-    starts = np.concatenate([[0], ends[:-1] + 1])
-    steps = np.concatenate([np.concatenate([obs[s:e + 1], nxt[e:e + 1]]) for s, e in zip(starts, ends)])
-    actions = np.concatenate([np.concatenate([act[s:e + 1], np.zeros((1, act.shape[1]), np.float32)])
-                              for s, e in zip(starts, ends)])
-    terminals = np.zeros(len(steps), bool)
-    terminals[np.cumsum(ends - starts + 2) - 1] = True
-    with h5py.File(path, "w") as f:
-        f["observations"], f["actions"] = steps, actions
-        f["rewards"], f["terminals"] = np.zeros(len(steps), np.float32), terminals
-        f["timeouts"] = np.zeros(len(steps), bool)
 
 
 def timed(cmd: list[str]) -> float:
@@ -58,7 +38,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "door-like.hdf5"
-        write_file(path, args.transitions)
+        write_door_like_hdf5(path, args.transitions, episode_length=200, seed=0)
         read, read_envs, refine = [], [], []
         for k in range(args.repeats):
             read.append(timed([sys.executable, "-c", READ, str(path)]))

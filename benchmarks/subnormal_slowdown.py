@@ -65,7 +65,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         source = str(REAL)
         if not REAL.is_file():
-            from rm_torchrl.cli.demo import write_door_like_hdf5
+            from rm_torchrl.data.synthetic import write_door_like_hdf5
 
             source = str(write_door_like_hdf5(Path(tmp) / "door-like.hdf5", 20_000, seed=0))
         runs = {}

@@ -8,7 +8,6 @@ import re
 import shutil
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 import torch
@@ -16,30 +15,14 @@ import yaml
 
 from rm_torchrl.cli.main import main
 from rm_torchrl.data.synthetic import make_door_like
+from rm_torchrl.data.synthetic import write_door_like_hdf5
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 
 
 def write_d4rl(path: Path, transitions: int = 4000, episode_length: int = 100, seed: int = 0) -> Path:
     """A D4RL-format file of door-like episodes (one step more per episode than transitions)."""
-    td = make_door_like(transitions, episode_length=episode_length, seed=seed)
-    obs, nxt, act = td["observation"].numpy(), td["next", "observation"].numpy(), td["action"].numpy()
-    ends = np.flatnonzero(td["next", "truncated"].squeeze(-1).numpy())
-    rows, actions, terminals = [], [], []
-    start = 0
-    for end in ends:
-        rows += [obs[start:end + 1], nxt[end:end + 1]]
-        actions += [act[start:end + 1], np.zeros((1, act.shape[1]), np.float32)]
-        terminals += [np.zeros(end - start + 1, bool), np.ones(1, bool)]
-        start = end + 1
-    observations = np.concatenate(rows)
-    with h5py.File(path, "w") as f:
-        f["observations"] = observations
-        f["actions"] = np.concatenate(actions)
-        f["rewards"] = np.zeros(len(observations), np.float32)
-        f["terminals"] = np.concatenate(terminals)
-        f["timeouts"] = np.zeros(len(observations), bool)
-    return path
+    return write_door_like_hdf5(path, transitions, episode_length, seed)
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,9 @@ reach it after a random delay and open the door at a random speed, some not all 
 """
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -66,3 +69,25 @@ def make_door_like(
         batch_size=[episodes, episode_length],
     )
     return td.reshape(-1)[:transitions].clone()
+
+
+def write_door_like_hdf5(path, transitions: int = 4000, episode_length: int = 100, seed: int = 0) -> Path:
+    """:func:`make_door_like` as a D4RL file: each episode's steps, then its last observation as a step of its own
+    (a zero action, ``terminals`` set), zero rewards, no timeouts; one step more per episode than transitions."""
+    import h5py
+
+    td = make_door_like(transitions, episode_length=episode_length, seed=seed)
+    obs, nxt, act = td["observation"].numpy(), td["next", "observation"].numpy(), td["action"].numpy()
+    ends = np.flatnonzero(td["next", "truncated"].squeeze(-1).numpy())
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    steps = np.concatenate([np.concatenate([obs[s:e + 1], nxt[e:e + 1]]) for s, e in zip(starts, ends)])
+    actions = np.concatenate([np.concatenate([act[s:e + 1], np.zeros((1, act.shape[1]), np.float32)])
+                              for s, e in zip(starts, ends)])
+    terminals = np.zeros(len(steps), bool)
+    terminals[np.cumsum(ends - starts + 2) - 1] = True
+    with h5py.File(path, "w") as f:
+        f["observations"], f["actions"] = steps, actions
+        f["rewards"], f["terminals"] = np.zeros(len(steps), np.float32), terminals
+        f["timeouts"] = np.zeros(len(steps), bool)
+    return Path(path)
+
