@@ -477,3 +477,12 @@ def test_an_interrupt_while_the_previous_output_is_removed_says_the_new_one_is_w
     assert caught.value.message == f"interrupted after the output was written: {out} holds the new result, whole"
     assert json.loads((out / "report.json").read_text()) == {"version": 2}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_refine_works_with_stderr_closed(tmp_path, tiny):
+    """`2>&-`: the messages have nowhere to go, the work is done all the same and says so by its exit status."""
+    out = tmp_path / "out"
+    cmd = f"{sys.executable} -m rm_torchrl.cli.main " + " ".join(map(str, refine_args(tiny, out))) + " 2>&-"
+    done = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and (out / "report.json").is_file(), done.stdout
+    assert "loading" not in done.stdout  # stderr's lines never land on stdout

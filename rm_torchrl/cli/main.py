@@ -201,6 +201,9 @@ def _check_minari_path() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    for name in ("stdout", "stderr"):  # started with it closed (2>&-): Python sets None, and prints would go elsewhere
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))
     try:
         _check_mujoco_gl()
         _check_minari_path()
