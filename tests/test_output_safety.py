@@ -479,10 +479,16 @@ def test_an_interrupt_while_the_previous_output_is_removed_says_the_new_one_is_w
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
-def test_refine_works_with_stderr_closed(tmp_path, tiny):
-    """`2>&-`: the messages have nowhere to go, the work is done all the same and says so by its exit status."""
+def test_refine_and_train_work_with_stderr_closed(tmp_path, tiny):
+    """`2>&-`: the messages have nowhere to go, the work is done all the same and says so by its exit status (a
+    training's evaluation env loads glfw, whose loader runs a child process that writes to stderr)."""
     out = tmp_path / "out"
-    cmd = f"{sys.executable} -m rm_torchrl.cli.main " + " ".join(map(str, refine_args(tiny, out))) + " 2>&-"
-    done = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300)
+    rmrl = f"{sys.executable} -m rm_torchrl.cli.main "
+    done = subprocess.run(["bash", "-c", rmrl + " ".join(map(str, refine_args(tiny, out))) + " 2>&-"],
+                          capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and (out / "report.json").is_file(), done.stdout
     assert "loading" not in done.stdout  # stderr's lines never land on stdout
+    train = ("train dataset=door-human-v0 method=bc trainer.steps=10 trainer.compile=false eval.every=10 "
+             f"eval.episodes=1 eval.max_steps=5 out={tmp_path / 'runs'} 2>&-")
+    done = subprocess.run(["bash", "-c", rmrl + train], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and (tmp_path / "runs" / "door-human-v0-bc-seed0" / "eval.csv").is_file(), done.stdout

@@ -11,6 +11,26 @@ import threading
 # and first-touch page faults would otherwise cost as much as the work itself.
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
+
+def _reopen_closed_streams() -> None:
+    """A command started with stdout or stderr closed (``2>&-``) writes them to /dev/null: Python would set the
+    stream to None (prints then land elsewhere), and libraries that load theirs through fd 2 (glfw) fail."""
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+            os.set_inheritable(fd, True)  # as a standard stream is: child processes write there too
+            setattr(sys, name, open(fd, "w", closefd=False))
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))
+
+
+_reopen_closed_streams()  # before any import opens a file, which would take a closed descriptor's number
+
 from rm_torchrl.data.d4rl import EPISODE_ENDS  # noqa: E402
 from rm_torchrl.errors import RMError  # noqa: E402
 
@@ -201,9 +221,6 @@ def _check_minari_path() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    for name in ("stdout", "stderr"):  # started with it closed (2>&-): Python sets None, and prints would go elsewhere
-        if getattr(sys, name) is None:
-            setattr(sys, name, open(os.devnull, "w"))
     try:
         _check_mujoco_gl()
         _check_minari_path()
