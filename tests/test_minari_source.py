@@ -375,3 +375,16 @@ def test_minari_datasets_path_pointing_at_a_file_is_one_line(tmp_path, monkeypat
     assert capsys.readouterr().err == (f"rmrl: error: MINARI_DATASETS_PATH={a_file} is a file; point it at a folder "
                                        "(Minari keeps its datasets there)\n")
     assert a_file.read_text() == "mine"
+
+
+def test_a_tmpdir_without_room_for_the_readers_copy_is_refused(minari_cache, monkeypatch):
+    """TorchRL's reader memory-maps a copy under TMPDIR; one that cannot hold it would end in SIGBUS."""
+    import shutil
+    from collections import namedtuple
+
+    _write_dataset("tiny/flat-v0")
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10, 10, 0))
+    with pytest.raises(RMError, match=r"loading Minari dataset 'tiny/flat-v0' needs about .* MiB in TMPDIR .*which "
+                                      r"has 0 MiB free; set TMPDIR to a folder with room"):
+        load_minari("tiny/flat-v0", download=False)

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import socket
 import sys
 import tempfile
 from contextlib import contextmanager
+from pathlib import Path
 from unittest import mock
 
 import minari
@@ -48,6 +50,7 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
         )
     if use_local:
         _check_readable(dataset_id, local[dataset_id])
+        _check_room(dataset_id)
     else:
         _check_reachable(dataset_id, local)
     with tempfile.TemporaryDirectory() as root, fixed_minari_reader():
@@ -101,6 +104,21 @@ def _check_readable(dataset_id: str, metadata: dict) -> None:
             f"Minari dataset {dataset_id!r} has {metadata.get('total_episodes', 0)} episode(s); "
             "TorchRL's Minari reader needs at least 2"
         )
+
+
+def _check_room(dataset_id: str) -> None:
+    """TorchRL's reader memory-maps its copy of the dataset under TMPDIR: a copy that does not fit there dies of
+    SIGBUS when a page cannot be backed, so too small a TMPDIR is refused first (the copy is about the size of
+    the dataset's files, float32 where they hold float64)."""
+    from minari.storage import get_dataset_path
+
+    files = [p for p in Path(get_dataset_path(dataset_id)).rglob("*") if p.is_file()]
+    need = sum(p.stat().st_size for p in files)
+    tmp = tempfile.gettempdir()
+    free = shutil.disk_usage(tmp).free
+    if free < need:
+        raise RMError(f"loading Minari dataset {dataset_id!r} needs about {need / 2**20:,.0f} MiB in TMPDIR ({tmp}), "
+                      f"which has {free / 2**20:,.0f} MiB free; set TMPDIR to a folder with room")
 
 
 def _canonical(data: TensorDictBase) -> TensorDict:
