@@ -492,3 +492,27 @@ def test_refine_and_train_work_with_stderr_closed(tmp_path, tiny):
              f"eval.episodes=1 eval.max_steps=5 out={tmp_path / 'runs'} 2>&-")
     done = subprocess.run(["bash", "-c", rmrl + train], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and (tmp_path / "runs" / "door-human-v0-bc-seed0" / "eval.csv").is_file(), done.stdout
+
+
+def test_a_signal_once_refines_output_is_in_place_exits_0_saying_so(tmp_path, tiny, monkeypatch, capsys):
+    """The work is done: a SIGTERM while refine prints its table is not a failure, and nothing is lost."""
+    from rm_torchrl.cli import refine as refine_cli
+    from rm_torchrl.cli.main import Terminated
+
+    class Interrupting:
+        def __init__(self, report):
+            self.report = report
+
+        def table(self):
+            raise Terminated
+
+        def to_dict(self):
+            return self.report.to_dict()
+
+    real = refine_cli.refine_with_progress
+    monkeypatch.setattr(refine_cli, "refine_with_progress",
+                        lambda *a, **k: (lambda out: (out[0], Interrupting(out[1])))(real(*a, **k)))
+    out = tmp_path / "out"
+    assert main([str(a) for a in refine_args(tiny, out)]) == 0
+    assert f"interrupted after the output was written: {out} holds the new result, whole" in capsys.readouterr().err
+    assert (out / "report.json").is_file()

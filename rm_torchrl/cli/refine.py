@@ -98,13 +98,17 @@ def run(args) -> int:
     data = load_dataset(opts["dataset"], episode_ends=opts["episode_ends"])
     refined, report = refine_with_progress(data, spec, opts["alpha"], opts["constraints"], reuse=opts["reuse"])
     meta = {"dataset": opts["dataset"], "episode_ends": opts["episode_ends"], **report.to_dict()}
-    out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
+    out = None
     try:
+        out = write_refined(opts["out"], refined, meta, overwrite=args.overwrite)
         print(report.table())
         print(f"wrote {refined.batch_size[0]:,} transitions to {out}/data and the report to {out}/report.json")
-    except KeyboardInterrupt as err:  # the output is complete: say so, not "nothing was written"
-        err.message = f"interrupted after the output was written: {out} holds the new result, whole"
-        raise
+    except KeyboardInterrupt as err:  # once the output is in place the work is done: say so, and exit 0
+        written = getattr(err, "written", None) or out
+        if written is None:
+            raise
+        print(f"interrupted after the output was written: {written} holds the new result, whole", file=sys.stderr)
+        return 0
     if args.minari_name:
         dataset_id = export_refined_minari(refined, report.to_dict(), args.minari_name, str(opts["events"]), spec.names,
                                            source=str(opts["dataset"]), overwrite=args.overwrite_minari)

@@ -285,6 +285,7 @@ def write_refined(out: str | Path, data: TensorDictBase, report: dict, overwrite
     except KeyboardInterrupt as err:  # SIGINT/SIGTERM now: the new output is in place; finish removing the old one
         shutil.rmtree(old, ignore_errors=True)
         err.message = f"interrupted after the output was written: {out} holds the new result, whole"
+        err.written = out
         raise
     return out
 
