@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -19,6 +20,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 from rm_torchrl.methods.config import METHOD_SECTIONS
 from rm_torchrl.run_format import HPARAMS, REFINE, run_label
+from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.recipe import RECIPES, scaled_to_budget
 
 from test_train import make_recipe, write_d4rl
@@ -195,15 +197,25 @@ def test_ours_reuse_is_ours_with_the_reuse_stage(data):
     assert reuse == ours
 
 
-@pytest.mark.parametrize("steps,rate", [(1000, 3e-4), (50_000, 3e-4), (100_000, 1.5e-4), (500_000, 3e-5)])
-def test_ours_actor_rate_keeps_the_50k_budgets_sum(steps, rate):
-    """Up to 50k updates ours' actor runs at 3e-4; longer runs get 3e-4 * 50k / steps (the door 500k study), and
-    its resolved recipe holds the number. The baselines keep 3e-4; the command line still wins."""
+#: ours.yaml's actor rate: ${scaled_to_budget:RATE,REFERENCE_STEPS,${trainer.steps}} (values read, not pinned here)
+_SCALED = re.fullmatch(r"\$\{scaled_to_budget:([^,]+),([^,]+),\$\{trainer.steps\}\}",
+                       yaml.safe_load((RECIPES / "method" / "ours.yaml").read_text())["optim"]["lr_actor"])
+OURS_RATE, OURS_REFERENCE = float(_SCALED.group(1)), int(_SCALED.group(2))
+
+
+@pytest.mark.parametrize("fraction", [0.02, 1.0, 2.0, 10.0])
+def test_ours_actor_rate_keeps_the_reference_budgets_sum(fraction):
+    """Up to the reference budget ours' actor runs at its rate; longer runs get rate * reference / steps, so the
+    summed rate stays the reference run's, and the resolved recipe holds the number. The baselines keep their
+    own rate; the command line still wins."""
+    steps = int(OURS_REFERENCE * fraction)
+    rate = OURS_RATE * min(1.0, OURS_REFERENCE / steps)
     for method in ("ours", "ours-reuse", "ours data.refine=none"):
         option, *more = method.split()
         recipe = load_recipe(None, ["dataset=door-human-v0", f"method={option}", f"trainer.steps={steps}", *more])
-        assert recipe.optim.lr_actor == rate and recipe.to_dict()["optim"]["lr_actor"] == rate
-    assert load_recipe(None, ["method=iql", f"trainer.steps={steps}"]).optim.lr_actor == 3e-4
+        assert recipe.optim.lr_actor == pytest.approx(rate) and recipe.to_dict()["optim"]["lr_actor"] == recipe.optim.lr_actor
+    iql = yaml.safe_load((RECIPES / "method" / "iql.yaml").read_text()).get("optim", {}).get("lr_actor")
+    assert load_recipe(None, ["method=iql", f"trainer.steps={steps}"]).optim.lr_actor == (iql or Recipe().optim.lr_actor)
     assert load_recipe(None, ["method=ours", f"trainer.steps={steps}", "optim.lr_actor=1e-4"]).optim.lr_actor == 1e-4
 
 
