@@ -466,3 +466,15 @@ def test_one_unreadable_checkpoint_does_not_stop_a_grid(tmp_path, dataset, capsy
     for k in (0, 2):
         assert torch.load(tmp_path / "runs" / f"tiny-seed{k}" / "checkpoint.pt", weights_only=True)["step"] == 20
     assert (broken / "checkpoint.pt").read_bytes() == b"not a checkpoint"
+
+
+def test_a_session_stopped_at_a_step_resumes_from_its_recipe_to_the_end(tmp_path, dataset):
+    """trainer.stop_at ends a session, not the experiment: the folder's recipe.yaml resumes to trainer.steps, and
+    the result is the uninterrupted run's, bit for bit."""
+    recipe = make_recipe(tmp_path, dataset)
+    straight = train(load_recipe(recipe, ["name=straight", "trainer.steps=40"]), progress=False)
+    split = train(load_recipe(recipe, ["name=split", "trainer.steps=40", "trainer.stop_at=15"]), progress=False)
+    assert torch.load(split / "checkpoint.pt", weights_only=True)["step"] == 15
+    assert "stop_at: 0" in (split / "recipe.yaml").read_text()
+    train(load_recipe(split / "recipe.yaml", ["resume=true"]), progress=False)
+    same_parameters(straight / "checkpoint.pt", split / "checkpoint.pt")

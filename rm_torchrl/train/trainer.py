@@ -242,8 +242,10 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
         from rm_torchrl.train.evaluate import Evaluator
 
         evaluator = Evaluator(recipe, data, method.policy, device)
-    def write_recipe() -> None:
-        write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(recipe.to_dict(), sort_keys=False))
+    def write_recipe() -> None:  # the experiment, not this session: resuming from it runs to the end
+        written = recipe.to_dict()
+        written["trainer"]["stop_at"] = 0
+        write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(written, sort_keys=False))
 
     if state is None:  # a resume keeps the folder's recipe.yaml until its first update has run
         write_recipe()
