@@ -299,10 +299,16 @@ def test_resume_reaches_the_same_parameters(tmp_path, dataset, layout):
 
 
 def test_existing_run_dir_is_refused(tmp_path, dataset):
+    """A finished run is named as finished (two demos into one folder once heard "pass resume=true" for it); an
+    unfinished one is told to resume."""
     recipe = load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=10"])
     train(recipe, progress=False)
-    with pytest.raises(RMError, match="resume=true"):
+    with pytest.raises(RMError, match=r"holds a finished run \(its checkpoint is at step 10\); pick another name"):
         train(recipe, progress=False)
+    partial = load_recipe(make_recipe(tmp_path, dataset), ["name=partial", "trainer.steps=20", "trainer.stop_at=10"])
+    train(partial, progress=False)
+    with pytest.raises(RMError, match="holds a checkpoint; pass resume=true to continue it"):
+        train(partial, progress=False)
 
 
 @pytest.mark.parametrize(

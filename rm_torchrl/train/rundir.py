@@ -177,10 +177,13 @@ def open_run(recipe) -> dict | None:
     run_dir = recipe.run_dir
     ckpt = run_dir / CHECKPOINT
     if ckpt.is_file():
+        state = load_checkpoint(ckpt)
+        if not recipe.resume and state["step"] >= recipe.trainer.steps:  # another process may have just finished it
+            raise RMError(f"run directory {run_dir} holds a finished run (its checkpoint is at step {state['step']}); "
+                          "pick another name or seed")
         if not recipe.resume:
             raise RMError(f"run directory {run_dir} holds a checkpoint; pass resume=true to continue it "
                           "or pick another name/seed")
-        state = load_checkpoint(ckpt)
         changes = recipe_changes(upgrade_recipe(state["recipe"]), recipe.to_dict())
         if changes:
             budget = any(c.startswith("trainer.steps:") for c in changes)
