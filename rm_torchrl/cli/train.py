@@ -35,6 +35,9 @@ from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.run_format import LEFT_ALONE
+
+#: run statuses with nothing left to train this session: done to the budget, or to the session's trainer.stop_at
+DONE = ("finished", "stopped")
 from rm_torchrl.train.config import SIGNAL_REPEAT
 from rm_torchrl.train.recipe import build_recipe, hydra_overrides, load_recipe, recipe_path, search_path_override
 
@@ -88,6 +91,14 @@ def _statuses_of(runs: list[tuple[str | None, list[str]]]) -> list[tuple[Path, s
     return [(r.run_dir, run_status(r), r.trainer.steps) for r in recipes]
 
 
+def _say_done(statuses: list[str]) -> None:
+    """How many runs have nothing to train this session: finished, or at their trainer.stop_at."""
+    for status, what in (("finished", "already finished"), ("stopped", "already at their trainer.stop_at")):
+        n = statuses.count(status)
+        if n:
+            tqdm.write(f"{n} of {len(statuses)} runs {what}: skipped", file=sys.stderr)
+
+
 def _say_left_alone(runs: list[tuple[str, str]]) -> None:
     """One line per kind of run a multirun leaves alone (failed, kept, unreadable), naming the folders."""
     for status, why in LEFT_ALONE.items():
@@ -103,9 +114,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     primary = recipe_path(path)
     combos = _sweep_combinations(path, overrides)
     before = _statuses_of([(path, c) for c in combos]) if combos is not None else []
-    done = sum(s == "finished" for _, s, _ in before)
-    if done:
-        tqdm.write(f"{done} of {len(before)} runs already finished: skipped", file=sys.stderr)
+    _say_done([s for _, s, _ in before])
     _say_left_alone([(str(d), s) for d, s, _ in before])
     subdir = "${name}-seed${seed}" if combos is not None else "${name}-trial${hydra.job.num}-seed${seed}"
     argv = ["--multirun", *hydra_overrides(overrides, path), search_path_override(),
@@ -140,7 +149,7 @@ def multirun(path, overrides: list[str], jobs: int = 2) -> int:
     if signum:
         _interrupted(signum, _saved(after))
     alone = {str(d) for d, s, _ in before if s in LEFT_ALONE}
-    left = [str(d) for d, s, _ in after if s != "finished" and str(d) not in alone]
+    left = [str(d) for d, s, _ in after if s not in DONE and str(d) not in alone]
     if left:
         raise RMError(f"{len(left)} of {len(after)} runs did not finish (see the messages above): {left}")
     print(f"finished {len(after)} runs")
@@ -343,7 +352,7 @@ def run_job(cfg) -> float | None:
         if status in LEFT_ALONE:
             print(f"{recipe.run_dir}: {LEFT_ALONE[status]}", file=sys.stderr)
             return None
-        if status != "finished":
+        if status not in DONE:
             recipe.resume = status == "resumable"
             print(f"{recipe.run_dir}: {'resuming' if recipe.resume else 'starting'}", file=sys.stderr, flush=True)
             train(recipe, progress=False)
@@ -378,9 +387,7 @@ def run_grid(runs: list[tuple[str | None, list[str]]], jobs: int) -> None:
     plans = [(path, overrides, status) for (path, overrides), (_, status, _) in zip(runs, statuses)]
     todo = [[*([path] if path else []), *o, *(["resume=true"] if s == "resumable" else [])]
             for path, o, s in plans if s in ("new", "resumable")]
-    done = sum(s == "finished" for *_, s in plans)
-    if done:
-        tqdm.write(f"{done} of {len(runs)} runs already finished: skipped", file=sys.stderr)
+    _say_done([s for *_, s in plans])
     _say_left_alone([(str(d), s) for d, s, _ in statuses])
     run_many(todo, jobs, resume_hint="run the same command again to resume them")
 

@@ -216,8 +216,9 @@ def mark_failed(run_dir: Path, step: int, what: str, message: str) -> None:
 
 
 def run_status(recipe) -> str:
-    """What a multirun does with ``recipe``'s run: ``new``, ``resumable``, ``finished``, or one of
-    :data:`LEFT_ALONE` (``failed``, ``kept``: evaluations without a checkpoint, ``unreadable``)."""
+    """What a multirun does with ``recipe``'s run: ``new``, ``resumable``, ``finished``, ``stopped`` (at its
+    ``trainer.stop_at``: nothing to do this session), or one of :data:`LEFT_ALONE` (``failed``, ``kept``:
+    evaluations without a checkpoint, ``unreadable``)."""
     run_dir = recipe.run_dir
     if (run_dir / FAILED).is_file():
         return "failed"
@@ -228,4 +229,6 @@ def run_status(recipe) -> str:
         step = load_checkpoint(ckpt)["step"]
     except RMError:
         return "unreadable"
-    return "finished" if step >= recipe.trainer.steps else "resumable"
+    if step >= recipe.trainer.steps:
+        return "finished"
+    return "stopped" if recipe.trainer.stop_at and step >= recipe.trainer.stop_at else "resumable"
