@@ -439,3 +439,13 @@ def test_a_cell_whose_runs_learn_differently_is_noted(tmp_path):
     notes = aggregate(group_runs(load_runs([tmp_path])), reps=50).notes
     assert any(n.startswith("Ours on door-human-v0: its runs differ in data.alpha (0.5, 1.0), yet are one cell")
                for n in notes), notes
+
+
+def test_every_interval_takes_at_least_the_minimum_resamples():
+    from rm_torchrl.errors import RMError
+    from rm_torchrl.report.stats import cell_iqm, probability_of_improvement
+
+    with pytest.raises(RMError, match="at least 50 bootstrap resamples"):
+        cell_iqm([1.0, 2.0, 3.0], reps=2)
+    with pytest.raises(RMError, match="at least 50 bootstrap resamples"):
+        probability_of_improvement([1.0, 2.0], [0.0, 1.0], reps=2)

@@ -9,7 +9,7 @@ from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.data.refined_to_minari import check_minari_target, export_refined_minari
-from rm_torchrl.data.store import check_out, write_refined
+from rm_torchrl.data.store import check_out, output_in_place, write_refined
 from rm_torchrl.errors import RMError, read_yaml
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import RefineReport, make_refine_pipeline, run_pipeline
@@ -107,7 +107,7 @@ def run(args) -> int:
         written = getattr(err, "written", None) or out
         if written is None:
             raise
-        print(f"interrupted after the output was written: {written} holds the new result, whole", file=sys.stderr)
+        print(output_in_place(written), file=sys.stderr)
         return 0
     if args.minari_name:
         dataset_id = export_refined_minari(refined, report.to_dict(), args.minari_name, str(opts["events"]), spec.names,

@@ -239,6 +239,11 @@ def _restore_previous(out: Path, old: Path) -> None:
             os.replace(old, out)
 
 
+def output_in_place(out) -> str:
+    """What an interrupt once the new output is in place says (the work is done)."""
+    return f"interrupted after the output was written: {out} holds the new result, whole"
+
+
 def write_refined(out: str | Path, data: TensorDictBase, report: dict, overwrite: bool = False) -> Path:
     """Writes ``out/data`` and ``out/report.json`` into a temporary sibling, then renames it into place.
 
@@ -284,7 +289,7 @@ def write_refined(out: str | Path, data: TensorDictBase, report: dict, overwrite
         shutil.rmtree(old, ignore_errors=True)
     except KeyboardInterrupt as err:  # SIGINT/SIGTERM now: the new output is in place; finish removing the old one
         shutil.rmtree(old, ignore_errors=True)
-        err.message = f"interrupted after the output was written: {out} holds the new result, whole"
+        err.message = output_in_place(out)
         err.written = out
         raise
     return out

@@ -175,6 +175,8 @@ def profile(scores: np.ndarray, taus: np.ndarray) -> np.ndarray:
 def _estimates(library, scores: dict, func, reps: int) -> dict[str, list[Estimate]]:
     """rliable's interval estimates, each entry of ``scores`` resampled on its own seeded generator: an entry's CI
     is the same whatever other entries a report holds (one generator drawing for all in turn would tie them)."""
+    if reps < MIN_REPS:  # with fewer, a percentile interval's 2.5% tails hold no resample and can miss the estimate
+        raise RMError(f"--reps must be at least {MIN_REPS} bootstrap resamples for a 95% interval, got {reps}")
     out = {}
     for key, value in scores.items():
         with _seeded():
@@ -226,8 +228,6 @@ def _matrix(kept: dict, method: str, names: list[str]) -> np.ndarray:
 
 def aggregate(groups: Iterable[Group], reps: int = REPS) -> Aggregates:
     """The cells' IQMs, each method's IQM over datasets, P(Ours > baseline), the performance profile."""
-    if reps < MIN_REPS:  # with fewer, a percentile interval's 2.5% tails hold no resample and can miss the estimate
-        raise RMError(f"--reps must be at least {MIN_REPS} bootstrap resamples for a 95% interval, got {reps}")
     library = _rliable()
     groups = [g for g in groups if g.scored]
     cells = [Cell(g.dataset, g.method, len(g.scored), max(r.final_step for r in g.scored), g.metric,
