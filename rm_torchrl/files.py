@@ -16,12 +16,17 @@ class WriteFailed(RMError):
         self.path = Path(path)
 
 
+def temp_name(name: str) -> str:
+    """The name :func:`write_atomic` writes a file ``name`` under before renaming it (its default)."""
+    return f".{name}.tmp"
+
+
 def write_atomic(path: Path, data: bytes | str, tmp: Path | None = None) -> None:
-    """``data`` into ``path`` through ``tmp`` (default ``.<name>.tmp`` beside it), renamed over
+    """``data`` into ``path`` through ``tmp`` (default :func:`temp_name` beside it), renamed over
     ``path`` when complete; when writing fails the temporary file is removed, so a full disk keeps
     the previous version and gets its space back."""
     path = Path(path)
-    tmp = Path(tmp) if tmp is not None else path.with_name(f".{path.name}.tmp")
+    tmp = Path(tmp) if tmp is not None else path.with_name(temp_name(path.name))
     try:
         with open(tmp, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)

@@ -6,6 +6,7 @@ data was refined (its stages are Table 2's rows, :data:`TABLE2_ROWS`), TorchRL l
 under :data:`LOGS_DIR`, :data:`CHECKPOINT`, :data:`FAILED_FILE` when a non-finite loss stopped it,
 and the lock of the process that owns it.
 """
+from rm_torchrl import files
 
 RECIPE_FILE = "recipe.yaml"
 EVAL_FILE = "eval.csv"
@@ -19,7 +20,7 @@ LOCK_FILE = ".lock"
 
 def temp_name(name: str) -> str:
     """The file a trainer's file ``name`` is written to before it is renamed over ``name``."""
-    return CHECKPOINT_TMP if name == CHECKPOINT else f".{name}.tmp"
+    return CHECKPOINT_TMP if name == CHECKPOINT else files.temp_name(name)
 
 
 TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, FAILED_FILE, LOCK_FILE,

@@ -17,7 +17,7 @@ import yaml
 
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.errors import RMError
-from rm_torchrl.report import dataset_label, find_run_dirs, group_runs, load_runs, method_label, read_run, tidy
+from rm_torchrl.report import dataset_label, find_run_dirs, group_runs, load_runs, method_label, read_run
 from rm_torchrl.report.runs import method_option
 from rm_torchrl.run_format import run_label
 from rm_torchrl.report.tables import results_table, stages_table
@@ -353,14 +353,13 @@ def test_curve_interpolates_seeds_onto_a_common_grid(reported):
     assert mean[-1] == pytest.approx(439.5) and std[-1] == pytest.approx(12.0)
 
 
-def test_tidy_and_scalars(reported):
+def test_read_run_and_scalars(reported):
     root, _ = reported
     run = read_run(root / "door-human" / "door-human-seed0")
     assert (run.dataset, run.method, run.seed, run.final_step) == ("door-human", "Ours", 0, 6000)
     assert run.scalars()["loss_actor"][:, 0].tolist() == [2000, 4000, 6000]
-    rows = tidy([run])
-    assert len(rows) == 3 and rows[-1]["step"] == 6000 and rows[-1]["value"] == pytest.approx(427.5)
-    assert rows[0]["method"] == "Ours" and rows[0]["episodes"] == 10
+    assert run.steps.tolist() == [2000, 4000, 6000] and run.values[-1] == pytest.approx(427.5)
+    assert run.evals["episodes"].tolist() == [10, 10, 10]
 
 
 # --- discovery -------------------------------------------------------------------------------

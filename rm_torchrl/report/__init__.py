@@ -17,7 +17,6 @@ from rm_torchrl.report.runs import (
     load_runs,
     method_label,
     read_run,
-    tidy,
 )
 from rm_torchrl.report.tables import results_markdown, results_table, stages_table
 
@@ -33,5 +32,4 @@ __all__ = [
     "results_markdown",
     "results_table",
     "stages_table",
-    "tidy",
 ]

@@ -531,18 +531,3 @@ def datasets(groups: Iterable[Group]) -> list[str]:
 
 def methods(groups: Iterable[Group]) -> list[str]:
     return sorted({g.method for g in groups}, key=method_sort_key)
-
-
-def tidy(runs: Iterable[Run]) -> list[dict]:
-    """Long format: one dict per evaluation with run, dataset, method, seed, metric and eval.csv's columns."""
-    rows = []
-    for run in runs:
-        n = len(run.steps)
-        for i in range(n):
-            row = {"run": str(run.path), "dataset": run.dataset, "method": run.method, "seed": run.seed,
-                   "metric": run.metric, "value": float(run.values[i])}
-            for column, values in run.evals.items():
-                row[column] = (int(values[i]) if column in ("step", "episodes")
-                               else str(values[i]) if column == REWARD_COLUMN else float(values[i]))
-            rows.append(row)
-    return rows

@@ -14,6 +14,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.encode import RMEncoding
 from rm_torchrl.refine.pipeline import refine
+from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.run_format import REUSED
 from rm_torchrl.train.config import Recipe
 
@@ -47,6 +48,14 @@ class TrainingData(PolicyInput):
         rows = torch.randint(len(self.transitions), (batch_size,), generator=generator)
         rows = rows.to(self.transitions.device, non_blocking=True)
         return self.transitions.apply(lambda x: x.index_select(0, rows), batch_size=[batch_size])
+
+
+def policy_reads(recipe: Recipe, events: EventSpec | None, obs_size: int) -> tuple[list, int]:
+    """The keys a policy of ``recipe`` reads and the size of their concatenation: one rule for training
+    and for loading a run, so a loaded policy's inputs are the trained one's."""
+    if not recipe.data.refined:
+        return ["observation"], obs_size
+    return ["observation", ENCODING_KEY], obs_size + EventOrderedRM(events.names).encoding_dim(recipe.rm.encoding)
 
 
 def _flat_observation(obs) -> torch.Tensor:
@@ -106,13 +115,11 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
             raise RMError(f"the dataset has no ('next', {key!r}) entry")
         columns["next"][key] = data.get(("next", key))
     columns["next"]["reward"] = columns["next"]["reward"].float()
-    obs_keys = ["observation"]
     if use_rm:  # what RMEnvTransform emits online, from the same RM states
         encoded = RMEncoding(spec, recipe.rm.encoding, encoding_key=ENCODING_KEY)(
             data.select("rm_state", ("next", "rm_state")))
         columns[ENCODING_KEY] = encoded.get(ENCODING_KEY)
         columns["next"][ENCODING_KEY] = encoded.get(("next", ENCODING_KEY))
-        obs_keys.append(ENCODING_KEY)
     td = TensorDict(columns, batch_size=data.batch_size)
     obs = td.get("observation")
     if recipe.trainer.normalize_obs:
@@ -125,6 +132,6 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     td = td.to(device)  # the same tensors on the CPU: no second copy of the dataset there
     # the TensorDict becomes the buffer's storage as it is
     buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
-    obs_dim = obs.shape[-1] + (td.get(ENCODING_KEY).shape[-1] if use_rm else 0)
+    obs_keys, obs_dim = policy_reads(recipe, spec, obs.shape[-1])
     return TrainingData(obs_keys=obs_keys, obs_dim=obs_dim, action_dim=td.get("action").shape[-1], loc=loc,
                         scale=scale, events=spec, buffer=buffer, transitions=td, report=report)

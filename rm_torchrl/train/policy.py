@@ -23,10 +23,9 @@ from torchrl.envs import TransformedEnv
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
-from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
 from rm_torchrl.train.config import Recipe, check_seed
-from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
+from rm_torchrl.train.data import PolicyInput, policy_reads
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
 from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.recipe import load_recipe
@@ -107,10 +106,7 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     state = load_checkpoint(run_dir / CHECKPOINT)
     loc, scale = state["obs_loc"], state["obs_scale"]
     events = load_event_spec(recipe.data.events) if recipe.data.events else None
-    obs_keys, obs_dim = ["observation"], loc.shape[-1]
-    if recipe.data.refined:
-        obs_keys.append(ENCODING_KEY)
-        obs_dim += EventOrderedRM(events.names).encoding_dim(recipe.rm.encoding)
+    obs_keys, obs_dim = policy_reads(recipe, events, loc.shape[-1])
     probe = make_eval_env(recipe, PolicyInput(obs_keys, obs_dim, None, loc, scale, events))  # the env's actions
     action_dim = probe.action_spec.shape[-1]
     probe.close()

@@ -18,9 +18,8 @@ from pathlib import Path
 
 import torch
 
-from rm_torchrl import files
 from rm_torchrl.errors import RMError
-from rm_torchrl.files import WriteFailed
+from rm_torchrl.files import WriteFailed, write_atomic
 from rm_torchrl.run_format import (CHECKPOINT, EVAL_FILE, FAILED_FILE as FAILED, LOCK_FILE as LOCK,
                                    TRAINER_FILES, flat_recipe, temp_name, upgrade_recipe)
 
@@ -79,11 +78,6 @@ class RunLock:
             self.fd = None
 
 
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """A run file written whole or not at all, through its temporary name (:func:`temp_name`)."""
-    files.write_atomic(path, data, Path(path).with_name(temp_name(Path(path).name)))
-
-
 @contextmanager
 def appending(path: Path):
     """A text file opened to append rows, all or nothing: when writing fails, the file is cut back
@@ -118,7 +112,7 @@ def save_checkpoint(path: Path, state: dict) -> None:
     a torch zip-writer error, and the previous checkpoint stays whole."""
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    write_atomic(path, buffer.getbuffer())
+    write_atomic(path, buffer.getbuffer(), Path(path).with_name(temp_name(Path(path).name)))
 
 
 def load_checkpoint(path: Path) -> dict:

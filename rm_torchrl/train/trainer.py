@@ -31,8 +31,9 @@ from rm_torchrl.methods.losses import compile_method
 from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, LOGS_DIR, RECIPE_FILE, REFINE_FILE
 from rm_torchrl.train.threads import auto_threads
-from rm_torchrl.train.rundir import (RunLock, WriteFailed, appending, cut_partial_line, load_checkpoint, mark_failed,
-                                    open_run, save_checkpoint, write_atomic)
+from rm_torchrl.files import WriteFailed, write_atomic
+from rm_torchrl.train.rundir import (RunLock, appending, cut_partial_line, load_checkpoint, mark_failed, open_run,
+                                    save_checkpoint)
 
 
 
