@@ -131,9 +131,8 @@ def test_door_human():
     # the door opens in order, so its first crossings are ordered too
     assert stats[1]["first_firing_min"] <= stats[2]["first_firing_min"]
     # the same rising-edge rule as the RM labelling
-    label = LabelRM("door")
-    label(td.clone())
-    assert list(label.stats["episodes_reaching"].values()) == [s["episodes_firing"] for s in stats]
+    _, label = LabelRM("door").refine(td)
+    assert list(label["episodes_reaching"].values()) == [s["episodes_firing"] for s in stats]
     table = format_event_table(stats)
     assert "door_1.35" in table and table.splitlines()[0].startswith("25 episodes")
 

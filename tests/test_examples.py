@@ -88,8 +88,7 @@ def test_example_31_labelling():
 
 def test_example_32_split_and_group():
     td, spec = ref.episodes_to_td([example_31_phis()], 3, names=NAMES)
-    split = SplitGroup()
-    out = split(LabelRM(spec)(td))
+    out, stats = SplitGroup().refine(LabelRM(spec)(td))
     # tau_1 = tau^{0:50}, tau_2 = tau^{51:120}; the tail tau^{121:...} (rows 121..199) is dropped
     assert out["t"].tolist() == list(range(0, 121))
     sub = out["subtrajectory"].tolist()
@@ -101,8 +100,8 @@ def test_example_32_split_and_group():
     assert tuple(out["next", "rm_state"][50].tolist()) == (E2, 0, 0)
     assert tuple(out["rm_state"][120].tolist()) == (E2, 0, 0)
     assert tuple(out["next", "rm_state"][120].tolist()) == (E2, E3, 0)
-    assert split.stats["subtrajectories"] == 2
-    assert split.stats["rows_in"] == 200 and split.stats["rows_out"] == 121
+    assert stats["subtrajectories"] == 2
+    assert stats["rows_in"] == 200 and stats["rows_out"] == 121
     pieces, groups = ref.split_and_group([ref.label_episode(example_31_phis(), 3)])
     assert [(p.start, p.stop, p.group) for p in pieces] == [(0, 50, (0, E2)), (51, 120, (E2, E3))]
 
@@ -123,13 +122,10 @@ def test_example_33_relabel(constraints):
     (td, spec), eps = example_33_dataset()
     stages = [LabelRM(spec), SplitGroup(), EventOrder(spec.names, constraints), Splice(), KeepShortest(1.0),
               CounterfactualRelabel()]
-    x = td
-    for stage in stages[:3]:
-        x = stage(x)
-    order = stages[2]
-    assert order.order == [E1, E2, E3]
-    assert order.score == 1 * 1 * 2
-    assert order.group_sizes == {(0, E2): 1, (E2, E3): 2, (0, E1): 1, (E1, E2): 1}
+    x, chosen = stages[2].refine(stages[1](stages[0](td)))
+    assert chosen["order"] == ["e1", "e2", "e3"]
+    assert chosen["order_score"] == 1 * 1 * 2
+    assert chosen["groups"] == {"e0->e1": 1, "e0->e2": 1, "e1->e2": 1, "e2->e3": 2}
     # tau_1 (T^{e0->e2}) is not on the order; tau_2 (T^{e2->e3}) is chosen at i = 3
     rank = dict(zip(zip(x["episode"].tolist(), x["t"].tolist()), x["group_rank"].tolist()))
     assert {rank[(0, t)] for t in range(0, 51)} == {0}

@@ -30,8 +30,8 @@ def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine", r
             bar.set_postfix_str(type(stage).__name__)
             bar.update()
 
-        refined = run_pipeline(pipeline, data, on_stage)
-    return refined, RefineReport.from_pipeline(pipeline)
+        refined, stats = run_pipeline(pipeline, data, on_stage)
+    return refined, RefineReport.from_stats(stats)
 
 
 def recipe_file(path: str) -> Path:

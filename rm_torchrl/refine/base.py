@@ -1,6 +1,9 @@
 """Common ground of the refinement stages: dataset-level TorchRL transforms."""
 from __future__ import annotations
 
+from types import MappingProxyType
+from typing import Mapping
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
@@ -12,13 +15,16 @@ class DatasetTransform(Transform):
     """A transform over a whole flat dataset of transitions (batch ``[N]``), not over env steps.
 
     Refinement needs every transition at once (groups, orders, lengths), so these transforms run in
-    ``forward`` - as ``Compose`` and replay-buffer sampling call them - and may drop rows. After a
-    call, ``stats`` holds what the stage kept, for reports.
+    ``forward`` - as ``Compose`` and replay-buffer sampling call them - and may drop rows. ``forward``
+    is a plain TensorDict -> TensorDict map; :meth:`refine` also returns what the stage kept, so
+    reports are built from returned values and a stage holds no state from its last call.
     """
+
+    #: The key of this stage's stats in what :func:`~rm_torchrl.refine.run_pipeline` returns.
+    stage_name: str = ""
 
     def __init__(self, in_keys, out_keys):
         super().__init__(in_keys=in_keys, out_keys=out_keys)
-        self.stats: dict = {}
         self.optional_keys: list = []  # read when present
 
     @property
@@ -27,6 +33,15 @@ class DatasetTransform(Transform):
         return [*self.in_keys, *self.out_keys, *self.optional_keys]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.refine(tensordict)[0]
+
+    def refine(self, tensordict: TensorDictBase, upstream: Mapping[str, dict] = MappingProxyType({})
+               ) -> tuple[TensorDictBase, dict]:
+        """``(refined, stats)``: ``stats`` holds ``rows_in``, ``rows_out`` and what the stage kept.
+
+        ``upstream``: the stats of the stages run before, by stage name (a stage may word its errors
+        with them). The input is left as it was: new columns go on a shallow copy.
+        """
         if tensordict.batch_dims != 1:
             raise RMError(
                 f"{type(self).__name__} works on a flat dataset of transitions (batch_size [N]), "
@@ -40,16 +55,12 @@ class DatasetTransform(Transform):
                 f"{type(self).__name__} needs key(s) {missing}, which the data does not have; "
                 "run the earlier refinement stages first (see make_refine_pipeline)"
             )
-        rows_in = tensordict.batch_size[0]
-        out = self._refine(tensordict)
-        self.stats = {"rows_in": rows_in, "rows_out": out.batch_size[0], **self._extra_stats()}
-        return out
+        out, kept = self._refine(tensordict.copy(), upstream)
+        return out, {"rows_in": tensordict.batch_size[0], "rows_out": out.batch_size[0], **kept}
 
-    def _refine(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _refine(self, tensordict: TensorDictBase, upstream: Mapping[str, dict]) -> tuple[TensorDictBase, dict]:
+        """The refined rows and this stage's own stats (beyond the row counts)."""
         raise NotImplementedError
-
-    def _extra_stats(self) -> dict:
-        return {}
 
     def _call(self, *args, **kwargs):
         raise RMError(

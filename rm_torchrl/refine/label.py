@@ -20,6 +20,8 @@ class LabelRM(DatasetTransform):
     that holds from the first step of every episode never fires: ``stats["held_at_start"]`` names them.
     """
 
+    stage_name = "label"
+
     def __init__(self, events: EventSpec | str, episode_key="episode", out_key="rm_state"):
         self.spec = load_event_spec(events)
         self.rm = EventOrderedRM(self.spec.names)
@@ -29,7 +31,7 @@ class LabelRM(DatasetTransform):
     def _repr_args(self) -> str:
         return f"events={self.spec.names}"
 
-    def _refine(self, td: TensorDictBase) -> TensorDictBase:
+    def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         episode = td.get(self.episode_key)
         starts = episode_runs(episode)
         if "next" not in td.keys():
@@ -37,7 +39,6 @@ class LabelRM(DatasetTransform):
         now = self.spec(td)
         fired = self.spec(td.get("next")) & ~now
         start_rows = starts.nonzero().squeeze(-1)
-        self._held_at_start = now[start_rows].all(0).tolist()
         n, n_runs, rows = self.rm.n, start_rows.numel(), starts.numel()
         never = torch.iinfo(torch.long).max
         first = torch.full((n_runs * n,), never, dtype=torch.long)
@@ -66,12 +67,8 @@ class LabelRM(DatasetTransform):
         state = pieces.repeat_interleave(torch.stack([torch.ones_like(span), span - 1], 1).flatten(), 0, output_size=rows)
         td.set(self.out_keys[0], state)
         td.set(self.out_keys[1], next_state)
-        self._episodes_reaching = (first < never).sum(0).tolist()
-        self._episodes = n_runs
-        return td
-
-    def _extra_stats(self) -> dict:
-        reached = dict(zip(self.spec.names, self._episodes_reaching))
-        held = [name for name, h in zip(self.spec.names, self._held_at_start) if h]
-        return {"episodes": self._episodes, "episodes_reaching": reached, "held_at_start": held}
+        held = [name for name, h in zip(self.spec.names, now[start_rows].all(0).tolist()) if h]
+        reached = dict(zip(self.spec.names, (first < never).sum(0).tolist()))
+        return td, {"events": list(self.spec.names), "episodes": n_runs, "episodes_reaching": reached,
+                    "held_at_start": held}
 

@@ -118,8 +118,10 @@ class EventOrder(DatasetTransform):
     """Finds the best event order and writes ``group_rank``: i for rows of T^{e^{i-1} -> e^i}, else 0.
 
     ``constraints`` are pairs ``(a, b)`` of event names (or 1-based ids): a must precede b.
-    After a call, ``order`` (event ids), ``score`` and ``group_sizes`` describe the choice.
+    Its stats name the chosen ``order``, its ``order_score`` and the size of every ``groups`` entry.
     """
+
+    stage_name = "order"
 
     def __init__(self, event_names: Sequence[str], constraints: Iterable = ()):
         super().__init__(
@@ -137,9 +139,6 @@ class EventOrder(DatasetTransform):
                 raise RMError(f"order constraint {self._name(a)}<{self._name(b)} names the same event twice")
             pairs.append((a, b))
         self.constraints = pairs
-        self.order: list[int] = []
-        self.score = 0
-        self.group_sizes: dict[tuple[int, int], int] = {}
 
     def _id(self, event) -> int:
         if isinstance(event, int) and not isinstance(event, bool) and 1 <= event <= len(self.event_names):
@@ -151,22 +150,20 @@ class EventOrder(DatasetTransform):
     def _repr_args(self) -> str:
         return f"constraints={self.constraints}" if self.constraints else ""
 
-    def _refine(self, td: TensorDictBase) -> TensorDictBase:
+    def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         n = len(self.event_names)
         first_rows = run_starts(td.get("subtrajectory"))
         pair = td.get("group_from") * (n + 1) + td.get("group_to")
         counts = torch.bincount(pair[first_rows], minlength=(n + 1) ** 2).view(n + 1, n + 1)
-        self.group_sizes = {
-            (a, b): int(counts[a, b]) for a, b in counts.nonzero().tolist()
-        }
-        self.order, self.score = best_event_order(counts.tolist(), self.constraints)
-        if self.score == 0:
+        group_sizes = {(a, b): int(counts[a, b]) for a, b in counts.nonzero().tolist()}
+        order, score = best_event_order(counts.tolist(), self.constraints)
+        if score == 0:
             cycle = _cycle(self.constraints)
             if cycle:
                 raise RMError("every event order scores 0 under the given constraints: they form a cycle, "
                               "so no order satisfies them: " + " < ".join(self._name(k) for k in cycle))
-            sizes = {group_name(self.event_names, a, b): c for (a, b), c in self.group_sizes.items()}
-            never = [self._name(k) for k in range(1, n + 1) if not any(b == k for _, b in self.group_sizes)]
+            sizes = {group_name(self.event_names, a, b): c for (a, b), c in group_sizes.items()}
+            never = [self._name(k) for k in range(1, n + 1) if not any(b == k for _, b in group_sizes)]
             if never:
                 raise RMError(f"every event order scores 0: {', '.join(never)} never happen(s) in the data (no "
                               f"sub-trajectory reaches it), so no order of all events has a non-empty group at each "
@@ -178,18 +175,15 @@ class EventOrder(DatasetTransform):
             )
         rank = torch.zeros((n + 1) ** 2, dtype=torch.long)
         prev = 0
-        for i, e in enumerate(self.order, start=1):
+        for i, e in enumerate(order, start=1):
             rank[prev * (n + 1) + e] = i
             prev = e
         td.set("group_rank", rank[pair])
-        return td
+        return td, {
+            "order": [self._name(k) for k in order],
+            "order_score": score,
+            "groups": {group_name(self.event_names, a, b): c for (a, b), c in sorted(group_sizes.items())},
+        }
 
     def _name(self, k: int) -> str:
         return event_name(self.event_names, k)
-
-    def _extra_stats(self) -> dict:
-        return {
-            "order": [self._name(k) for k in self.order],
-            "order_score": self.score,
-            "groups": {group_name(self.event_names, a, b): c for (a, b), c in sorted(self.group_sizes.items())},
-        }

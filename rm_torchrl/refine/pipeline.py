@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from types import MappingProxyType
+from typing import Callable, Iterable, Mapping
 
 import torch
 
@@ -14,7 +15,7 @@ from torchrl.envs.transforms import Compose
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.label import LabelRM
-from rm_torchrl.refine.base import take_rows
+from rm_torchrl.refine.base import DatasetTransform, take_rows
 from rm_torchrl.refine.order import EventOrder
 from rm_torchrl.refine.relabel import CounterfactualRelabel
 from rm_torchrl.refine.reuse import ReuseAbandoned
@@ -35,10 +36,9 @@ def make_refine_pipeline(
     if not isinstance(reuse, bool):
         raise RMError(f"reuse must be true or false, got {reuse!r}")
     spec = load_event_spec(events)
-    label = LabelRM(spec, episode_key=episode_key)
     return Compose(
-        label,
-        SplitGroup(episode_key=episode_key, labels=label),
+        LabelRM(spec, episode_key=episode_key),
+        SplitGroup(episode_key=episode_key),
         EventOrder(spec.names, constraints),
         *([ReuseAbandoned(spec.names)] if reuse else []),
         Splice(),
@@ -64,26 +64,31 @@ class RefineReport:
     reuse: dict = field(default_factory=dict)
 
     @classmethod
-    def from_pipeline(cls, pipeline: Compose) -> "RefineReport":
-        (label, split, order, splice, shortest, relabel), reuse = _stages(pipeline)
-        ordered = {"ordered": splice.stats["rows_out"]} if reuse is None else {
-            "ordered": reuse.stats["rows_on_order"], REUSED: splice.stats["rows_out"]}
+    def from_stats(cls, stats: Mapping[str, dict]) -> "RefineReport":
+        """The report of the stats :func:`run_pipeline` returns beside the refined data."""
+        missing = [name for name in _PAPER_STAGES if name not in stats]
+        if missing:
+            raise RMError(f"a report needs the stats of every refinement stage; these lack {missing}")
+        label, split, order, splice, shortest, relabel = (stats[name] for name in _PAPER_STAGES)
+        reuse = stats.get(ReuseAbandoned.stage_name)
+        ordered = {"ordered": splice["rows_out"]} if reuse is None else {
+            "ordered": reuse["rows_on_order"], REUSED: splice["rows_out"]}
         return cls(
             stages={
-                "original": label.stats["rows_in"],
-                "split": split.stats["rows_out"],
+                "original": label["rows_in"],
+                "split": split["rows_out"],
                 **ordered,
-                "shorter": shortest.stats["rows_out"],
+                "shorter": shortest["rows_out"],
             },
-            order=order.stats["order"],
-            order_score=order.stats["order_score"],
-            groups=order.stats["groups"],
-            events=list(label.spec.names),
-            alpha=float(shortest.alpha),
-            episodes=label.stats["episodes"],
-            episodes_reaching=label.stats["episodes_reaching"],
-            subtrajectories={"split": split.stats["subtrajectories"], "refined": relabel.stats["episodes"]},
-            reuse={} if reuse is None else {k: v for k, v in reuse.stats.items() if k not in ("rows_in", "rows_out")},
+            order=order["order"],
+            order_score=order["order_score"],
+            groups=order["groups"],
+            events=label["events"],
+            alpha=shortest["alpha"],
+            episodes=label["episodes"],
+            episodes_reaching=label["episodes_reaching"],
+            subtrajectories={"split": split["subtrajectories"], "refined": relabel["episodes"]},
+            reuse={} if reuse is None else {k: v for k, v in reuse.items() if k not in ("rows_in", "rows_out")},
         )
 
     def to_dict(self) -> dict:
@@ -111,45 +116,51 @@ class RefineReport:
         return "\n".join(lines)
 
 
-def _stages(pipeline: Compose):
-    """The six stages of the paper's pipeline, and ReuseAbandoned (None when it is not there)."""
-    found = {type(t): t for t in pipeline.transforms}
-    wanted = (LabelRM, SplitGroup, EventOrder, Splice, KeepShortest, CounterfactualRelabel)
-    missing = [w.__name__ for w in wanted if w not in found]
-    if missing:
-        raise RMError(f"a report needs every refinement stage; the pipeline lacks {missing}")
-    return [found[w] for w in wanted], found.get(ReuseAbandoned)
+#: The stats a report reads: the six stages of the paper's pipeline, by name.
+_PAPER_STAGES = tuple(s.stage_name for s in (LabelRM, SplitGroup, EventOrder, Splice, KeepShortest,
+                                             CounterfactualRelabel))
 
 
 _ROW = "_refine_row"
 
 
-def run_pipeline(pipeline: Compose, data: TensorDictBase, on_stage: Callable | None = None) -> TensorDictBase:
-    """``pipeline(data)`` with the wide columns gathered once, at the end, instead of at every stage.
+def run_pipeline(pipeline: Compose, data: TensorDictBase, on_stage: Callable | None = None
+                 ) -> tuple[TensorDictBase, dict[str, dict]]:
+    """``(refined, stats)``: ``pipeline(data)``, wide columns gathered once at the end, and what each stage kept.
 
-    The first stage sees everything (labelling reads the observations); the later ones get only
-    the columns they use plus a row index, and the rest of each kept row is fetched at the end.
-    The result equals ``pipeline(data.copy())``. ``on_stage(stage)`` is called before each stage.
+    The refined data equals ``pipeline(data.copy())``. ``stats`` maps each :class:`DatasetTransform`'s
+    ``stage_name`` to its :meth:`~DatasetTransform.refine` stats, in pipeline order; each stage sees
+    those before it. The first stage sees every column (labelling reads the observations); the later
+    ones get only the columns they use plus a row index, and the rest of each kept row is fetched at
+    the end. ``on_stage(stage)`` is called before each stage.
     """
     stages = list(pipeline.transforms)
-    td = data.copy()
+    td, stats = data.copy(), {}
     if not stages:
-        return td
-    if on_stage:
-        on_stage(stages[0])
-    td = stages[0](td)
+        return td, stats
+    td = _run_stage(stages[0], td, stats, on_stage)
     used = {_key(k) for stage in stages[1:] for k in getattr(stage, "keys_used", stage.in_keys + stage.out_keys)}
     present = [k for k in td.keys(include_nested=True, leaves_only=True) if _key(k) in used]
     light = td.select(*present)
     light.set(_ROW, torch.arange(td.batch_size[0]))
     heavy = td.exclude(*present)
     for stage in stages[1:]:
-        if on_stage:
-            on_stage(stage)
-        light = stage(light)
+        light = _run_stage(stage, light, stats, on_stage)
     out = take_rows(heavy, light.pop(_ROW))
     out.update(light)
-    return out
+    return out, stats
+
+
+def _run_stage(stage, td: TensorDictBase, stats: dict, on_stage: Callable | None) -> TensorDictBase:
+    """``stage(td)``; a :class:`DatasetTransform` also adds its stats to ``stats`` (and reads those before it)."""
+    if on_stage:
+        on_stage(stage)
+    if not isinstance(stage, DatasetTransform):
+        return stage(td)
+    if stage.stage_name in stats:
+        raise RMError(f"the pipeline runs two {stage.stage_name!r} stages; their stats would share one name")
+    td, stats[stage.stage_name] = stage.refine(td, MappingProxyType(stats))
+    return td
 
 
 def _key(key) -> tuple:
@@ -163,8 +174,8 @@ def refine(data: TensorDictBase, events: EventSpec | str, alpha: float = 1.0, co
     ``reuse``: also bring back the sub-trajectories the splice abandons (:class:`ReuseAbandoned`).
     """
     pipeline = make_refine_pipeline(events, alpha, constraints, reuse=reuse)
-    refined = run_pipeline(pipeline, data)
-    return refined, RefineReport.from_pipeline(pipeline)
+    refined, stats = run_pipeline(pipeline, data)
+    return refined, RefineReport.from_stats(stats)
 
 
 def refine_replay_buffer(
@@ -173,7 +184,7 @@ def refine_replay_buffer(
     """A new buffer holding the refined content of ``buffer`` (memory-mapped under ``scratch_dir`` if given)."""
     if len(buffer) == 0:
         raise RMError("the replay buffer is empty: there is nothing to refine")
-    refined = run_pipeline(pipeline, buffer.storage[: len(buffer)])
+    refined, _ = run_pipeline(pipeline, buffer.storage[: len(buffer)])
     if scratch_dir is None:
         storage = LazyTensorStorage(refined.numel())
     else:

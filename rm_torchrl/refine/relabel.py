@@ -19,6 +19,8 @@ class CounterfactualRelabel(DatasetTransform):
     source episode survives as ``source_episode``.
     """
 
+    stage_name = "relabel"
+
     def __init__(self, episode_key="episode", rm_key="rm_state", reward_key="reward"):
         super().__init__(
             in_keys=["subtrajectory", "group_rank", "group_to", rm_key],
@@ -30,7 +32,7 @@ class CounterfactualRelabel(DatasetTransform):
         self.optional_keys = [("next", reward_key), episode_key]
         self.episode_key, self.rm_key, self.reward_key = episode_key, rm_key, reward_key
 
-    def _refine(self, td: TensorDictBase) -> TensorDictBase:
+    def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         n = td.get(self.rm_key).shape[-1]
         rm = EventOrderedRM(n)
         rank = td.get("group_rank")
@@ -56,8 +58,4 @@ class CounterfactualRelabel(DatasetTransform):
         if self.episode_key in td.keys():
             td.set("source_episode", td.get(self.episode_key))
         td.set(self.episode_key, run_index(starts))
-        self._episodes = int(starts.sum())
-        return td
-
-    def _extra_stats(self) -> dict:
-        return {"episodes": self._episodes}
+        return td, {"episodes": int(starts.sum())}

@@ -20,11 +20,13 @@ class ReuseAbandoned(DatasetTransform):
     RM states {microwave} -> {microwave, kettle}; one kettle -> microwave gets rank 1.
     """
 
+    stage_name = "reuse"
+
     def __init__(self, event_names: Sequence[str]):
         super().__init__(in_keys=["subtrajectory", "group_rank", "group_to"], out_keys=["group_rank", "reused"])
         self.event_names = list(event_names)
 
-    def _refine(self, td: TensorDictBase) -> TensorDictBase:
+    def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         n = len(self.event_names)
         rank, group_to = td.get("group_rank"), td.get("group_to")
         order = order_from_ranks(rank, group_to, n)
@@ -40,14 +42,10 @@ class ReuseAbandoned(DatasetTransform):
         rows = torch.bincount(new_rank[reused], minlength=n + 1).tolist()
         previous = [0, *order[:-1].tolist()]
         groups = {i: group_name(self.event_names, a, b) for i, (a, b) in enumerate(zip(previous, order.tolist()), 1) if b}
-        self._stats = {
+        return td, {
             "subtrajectories": int(first.sum()),
             "rows": int(reused.sum()),
             "rows_on_order": int((rank > 0).sum()),
             "groups": {name: pieces[i] for i, name in groups.items()},
             "group_rows": {name: rows[i] for i, name in groups.items()},
         }
-        return td
-
-    def _extra_stats(self) -> dict:
-        return self._stats

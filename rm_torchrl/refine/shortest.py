@@ -32,6 +32,8 @@ class KeepShortest(DatasetTransform):
     Equal lengths keep dataset order, so the result is deterministic.
     """
 
+    stage_name = "shortest"
+
     def __init__(self, alpha: float = 1.0):
         super().__init__(in_keys=["subtrajectory", "group_rank"], out_keys=[])
         self.alpha = check_alpha(alpha)
@@ -39,9 +41,10 @@ class KeepShortest(DatasetTransform):
     def _repr_args(self) -> str:
         return f"alpha={float(self.alpha)}"
 
-    def _refine(self, td: TensorDictBase) -> TensorDictBase:
+    def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
+        kept = {"alpha": float(self.alpha)}
         if self.alpha == 1:
-            return td
+            return td, kept
         first_rows = run_starts(td.get("subtrajectory")).nonzero().squeeze(-1)
         length = torch.diff(first_rows, append=first_rows.new_tensor([td.batch_size[0]]))
         group = td.get("group_rank")[first_rows]
@@ -54,6 +57,6 @@ class KeepShortest(DatasetTransform):
         group_first = torch.cat([sizes.new_zeros(1), sizes.cumsum(0)[:-1]])
         sorted_group = group[ranked]
         position = torch.arange(ranked.numel()) - group_first[sorted_group]
-        kept = torch.zeros_like(length, dtype=torch.bool)
-        kept[ranked] = position < quota[sorted_group]
-        return take_rows(td, rows_of_runs(first_rows[kept], length[kept]))
+        keep = torch.zeros_like(length, dtype=torch.bool)
+        keep[ranked] = position < quota[sorted_group]
+        return take_rows(td, rows_of_runs(first_rows[keep], length[keep])), kept

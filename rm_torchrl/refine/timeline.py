@@ -60,11 +60,12 @@ def event_timelines(td: TensorDictBase, spec: EventSpec | str, alpha: float = 1.
         timeline.append(EpisodeTimeline(
             episode=int(labelled.get("episode")[int(starts[k])]), holds=holds[rows].numpy(), fires=fires[rows].numpy(),
             rm_level=level[rows].numpy(), rm_events=[spec.names[int(s) - 1] for s in last.tolist() if s > 0]))
-    spliced = splice(order(split(labelled)))
+    ranked, chosen = order.refine(split(labelled))
+    spliced = splice(ranked)
     first = run_starts(spliced.get("subtrajectory")).nonzero().squeeze(-1)
     sizes = torch.diff(first, append=torch.tensor([spliced.batch_size[0]]))
     rank = spliced.get("group_rank")[first]
-    names = ["e0", *order.stats["order"]]
+    names = ["e0", *chosen["order"]]
     lengths, cuts = {}, {}
     for i in range(1, len(names)):
         group = np.sort(sizes[rank == i].numpy())
@@ -72,4 +73,4 @@ def event_timelines(td: TensorDictBase, spec: EventSpec | str, alpha: float = 1.
         lengths[key] = group
         if group.size:
             cuts[key] = int(group[max(1, math.ceil(alpha * group.size)) - 1])
-    return Timelines(list(spec.names), order.stats["order"], float(alpha), timeline, lengths, cuts)
+    return Timelines(list(spec.names), chosen["order"], float(alpha), timeline, lengths, cuts)
