@@ -389,7 +389,7 @@ def table1_block(summary: list[dict], aggregates: dict, results_md: str = "", ev
         out.append("")
     todo = incomplete_lines(results_md)
     if todo:
-        out += ["**Not complete yet** (`python benchmarks/table1.py run` continues them; the table shows the "
+        out += ["**Not complete yet** (`python benchmarks/studies/table1.py run` continues them; the table shows the "
                 "finished seeds only):", "", *todo, ""]
     for name, alt, part in images:
         out += [f"![{alt}](benchmarks/results/table1/{name})", ""]
@@ -433,7 +433,7 @@ def ablation_block(summary: list[dict] | None, choices: list[dict], results_md: 
     out = [NOTE.format(src="refinement-ablation/"), ""]
     if summary is None:
         out += ["Not reported yet: `benchmarks/results/refinement-ablation/summary.json` does not exist "
-                "(`python benchmarks/refinement_ablation.py report` writes it from the finished runs)."]
+                "(`python benchmarks/studies/refinement_ablation.py report` writes it from the finished runs)."]
         return "\n".join(out) + "\n"
     kept, left = split_chosen([r for r in summary if int(r["steps"]) < 500_000], choices)
     if kept:
@@ -470,7 +470,7 @@ def door500k_block(summary: list[dict], ablation: list[dict] | None, choices: li
     reported_left, _ = table1_left_out(results_md, {canonical(str(r["dataset"])): shown(r) for r in summary}
                                        or {dataset: dataset})
     if kept:
-        out += ["`benchmarks/door_500k.py`'s runs (the recipes' defaults) on seeds no choice used:", "",
+        out += ["`benchmarks/studies/door_500k.py`'s runs (the recipes' defaults) on seeds no choice used:", "",
                 *ablation_rows(kept, every)]
     if reported_left or left:
         out += ["Left out of `benchmarks/results/door-human-v0-500k/` (the runs stay committed there): under "
@@ -481,8 +481,8 @@ def door500k_block(summary: list[dict], ablation: list[dict] | None, choices: li
     if long_kept:
         out += ["500k-step runs of the refinement ablation, on seeds no choice used:", "", *ablation_rows(long_kept)]
     if not kept or not long_kept:
-        missing = [f"`benchmarks/door_500k.py`'s runs" if not kept else "",
-                   "the refinement ablation's 500k runs (`benchmarks/refinement_ablation.py run --budget 500k`)"
+        missing = [f"`benchmarks/studies/door_500k.py`'s runs" if not kept else "",
+                   "the refinement ablation's 500k runs (`benchmarks/studies/refinement_ablation.py run --budget 500k`)"
                    if not long_kept else ""]
         out += [f"Not finished yet, on {dataset} seeds no choice used ({first_free_seed(choices, dataset)} and up): "
                 + " and ".join(m for m in missing if m) + "; "

@@ -21,13 +21,23 @@ def generate_cli(*argv: str) -> int:
 
 
 def load_benchmark(name: str):
-    """The module of ``benchmarks/NAME.py`` (the scripts are not a package)."""
+    """The module of the script ``benchmarks/NAME.py`` (``NAME`` may name a subfolder: ``diagnostics/iql_diagnostics``).
+
+    The scripts are not a package: as ``python benchmarks/NAME.py`` does, the script's own folder comes first on
+    ``sys.path`` while it loads, so its sibling imports resolve; the path is restored afterwards.
+    """
     import importlib.util
+    import sys
 
     script = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(name, script)
+    spec = importlib.util.spec_from_file_location(script.stem, script)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    saved = list(sys.path)
+    sys.path.insert(0, str(script.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path[:] = saved
     return module
 
 

@@ -1,4 +1,4 @@
-"""The sub-trajectory phases of ``benchmarks/iql_diagnostics.py``, against a per-transition loop."""
+"""The sub-trajectory phases of ``benchmarks/diagnostics/iql_diagnostics.py``, against a per-transition loop."""
 from __future__ import annotations
 
 import pytest
@@ -10,7 +10,7 @@ from conftest import load_benchmark
 
 @pytest.fixture(scope="module")
 def diagnostics():
-    return load_benchmark("iql_diagnostics")
+    return load_benchmark("diagnostics/iql_diagnostics")
 
 
 def chained(lengths, done_inside=()):

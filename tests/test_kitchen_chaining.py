@@ -1,4 +1,4 @@
-"""The handover measure of ``benchmarks/kitchen_chaining.py`` on hand-made joint positions."""
+"""The handover measure of ``benchmarks/diagnostics/kitchen_chaining.py`` on hand-made joint positions."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +9,7 @@ from conftest import load_benchmark
 
 @pytest.fixture(scope="module")
 def chaining():
-    return load_benchmark("kitchen_chaining")
+    return load_benchmark("diagnostics/kitchen_chaining")
 
 
 def test_nearest_leaves_each_point_out_when_asked(chaining):

@@ -213,7 +213,7 @@ def test_demo_accepts_the_files_its_report_writes(tmp_path):
 
 
 def test_table1_benchmark_report(tmp_path):
-    """``benchmarks/table1.py report`` on its own layout: the IQM column, the aggregate section and its files.
+    """``benchmarks/studies/table1.py report`` on its own layout: the IQM column, the aggregate section and its files.
     Runs on a seed a choice of settings used, and BC runs from before CORL's BC (no method.bc: the Gaussian
     likelihood), are left out, each named under "Runs left out"."""
     results = tmp_path / "results"
@@ -229,7 +229,7 @@ def test_table1_benchmark_report(tmp_path):
     runs(results / "runs", "door-human-v0", "bc", [99], step=50_000, seeds=[other])  # the likelihood BC of before
     runs(results / "runs", "door-human-v0", "iql", [99], step=50_000, seeds=[0])  # seed 0 chose ours' settings
     runs(results / "runs", "door-human-v0", "cql", [60, 70, 80], step=10_000, seeds=seeds)
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "table1.py"), "report", "--out",
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "studies" / "table1.py"), "report", "--out",
                            str(tmp_path / "none"), "--results", str(results), "--reps", "300"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -252,13 +252,15 @@ def test_table1_benchmark_report(tmp_path):
 
 
 def door_500k_report(out: Path, results: Path) -> None:
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), "report", "--out", str(out),
-                           "--results", str(results), "--reps", "200"], capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "studies" / "door_500k.py"), "report",
+                           "--out", str(out), "--results", str(results), "--reps", "200"],
+                          capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
 
 
 def test_door_500k_benchmark_report(tmp_path):
-    """``benchmarks/door_500k.py report``: per-method table with IQM, best, last five, the hold check; unfinished runs out."""
+    """``benchmarks/studies/door_500k.py report``: per-method table with IQM, best, last five, the hold check;
+    unfinished runs out."""
     results = tmp_path / "results"
     curve = {step: 10.0 for step in range(10_000, 500_001, 10_000)}
     seeds = free_seeds("door-human-v0", 3)
@@ -312,8 +314,8 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
 
 
 def door_500k(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "door_500k.py"), *args], capture_output=True,
-                          text=True, timeout=300)
+    return subprocess.run([sys.executable, str(ROOT / "benchmarks" / "studies" / "door_500k.py"), *args],
+                          capture_output=True, text=True, timeout=300)
 
 
 def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, stop: int = 500_000,

@@ -658,7 +658,7 @@ def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_r
 
 def test_evaluating_more_often_leaves_training_as_it_is(tmp_path, dataset):
     """The evaluator draws nothing from training's random streams: a run evaluated every 5 steps reaches the
-    weights and evaluations of one evaluated every 10 at the steps both evaluate (benchmarks/door_500k.py's
+    weights and evaluations of one evaluated every 10 at the steps both evaluate (benchmarks/studies/door_500k.py's
     ``adopt`` relies on it)."""
     recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 5, every: 5, episodes: 2}\n")
     dense = train(load_recipe(recipe, ["name=dense", "trainer.steps=20", "eval.every=5"]), progress=False)

@@ -16,7 +16,7 @@ Why it is built this way (measured on the env, see the project issue):
   open or close, so action noise cannot loosen a grip.
 * Between skills the hand returns to a central home pose: going straight from one handle to the
   next sweeps open doors shut.
-* The pace is D4RL's (``benchmarks/kitchen_pace.py``, 12 four-task episodes): a skill's work stops
+* The pace is D4RL's (``benchmarks/diagnostics/kitchen_pace.py``, 12 four-task episodes): a skill's work stops
   when its task is completed, as a person stops pushing a switch that is on; the return home is a
   way point passed within 0.12 m, not a pose to settle in; free moves run 1.5x the episode speed and
   each joint step aims 1.5x the IK step ahead (the position servos lag the target). Steps between
@@ -32,7 +32,7 @@ Why it is built this way (measured on the env, see the project issue):
   section 4.3.2); kitchen-partial has a share of target-order episodes (D4RL: "a subset of the dataset
   is guaranteed to solve the task"), kitchen-mixed none. The shares (``all_goals``, ``canonical``,
   ``goal_counts``) were chosen, before any training on the data, so that the paper's Table 2 sizes
-  after each stage come out within 25% (``benchmarks/generated_datasets.py``).
+  after each stage come out within 25% (``benchmarks/studies/generated_datasets.py``).
 
 ``KitchenPlayController`` follows the policy protocol of ``rm_torchrl.generate.record``; it tracks
 which tasks were completed (achieved goal within 0.3 of the desired goal, as the ``kitchen`` event

@@ -23,6 +23,7 @@ in place; ``overwrite`` replaces only a dataset that ``rmrl generate`` wrote.
 from __future__ import annotations
 
 import inspect
+import time
 import warnings
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
@@ -126,6 +127,24 @@ def make_env(env_id: str, max_steps: int, env_kwargs: dict | None = None):
         except Exception as err:  # unknown id, missing dependency, bad kwargs
             raise RMError(f"cannot make environment {env_id!r}: {type(err).__name__}: {err}") from None
 
+
+def bare_rate(env_id: str, steps: int, seed: int = 0, env_kwargs: dict | None = None) -> dict:
+    """Steps/s of ``env.step`` alone with uniform random actions (resets included), one process: the baseline
+    a generator's rate is measured against, since the simulator bounds what any scripted policy can reach."""
+    env = make_env(env_id, 200, env_kwargs)
+    rng = np.random.default_rng(seed)
+    env.action_space.seed(seed)
+    env.reset(seed=seed)
+    low, high = env.action_space.low, env.action_space.high
+    actions = rng.uniform(low, high, size=(steps,) + low.shape).astype(np.float32)
+    t0 = time.perf_counter()
+    for a in actions:
+        _, _, term, trunc, _ = env.step(a)
+        if term or trunc:
+            env.reset()
+    seconds = time.perf_counter() - t0
+    env.close()
+    return {"steps": steps, "seconds": round(seconds, 3), "steps_per_s": steps / seconds}
 
 def stack(items: list):
     """Stack a list of observations into one array, or a (nested) dict of arrays for dict observations."""

@@ -3,7 +3,7 @@
 On a CPU, torch's OpenMP threads spin while they wait for each other: a run that takes every core
 beside another busy process stalls (measured on 2 cores beside one other training: 7x slower than
 one thread). So the default counts the cores that are idle when the run starts, sampled from
-``/proc/stat`` over a short window, and takes those (at least one); ``benchmarks/thread_default.py``
+``/proc/stat`` over a short window, and takes those (at least one); ``benchmarks/speed/thread_default.py``
 measures it against one thread and all cores on an idle and on a busy machine.
 """
 from __future__ import annotations

@@ -1,13 +1,13 @@
 """The paper's Table 1 on this machine: every dataset x method x seed, resumable, with its report.
 
-    python benchmarks/table1.py setup             # generate the five stand-in datasets (skips those present;
-                                                  # --datasets: only these, relocate-cloned brings relocate-human)
-    python benchmarks/table1.py run --jobs 2      # the grid; run it again to skip finished runs, resume killed ones
-                                                  # (runs committed under the results in earlier sessions are skipped)
-    python benchmarks/table1.py report            # benchmarks/results/table1/ (--reps: bootstrap resamples)
+    python benchmarks/studies/table1.py setup         # generate the five stand-in datasets (skips those present;
+                                                      # --datasets: only these, relocate-cloned brings relocate-human)
+    python benchmarks/studies/table1.py run --jobs 2  # the grid; run it again to skip finished runs, resume killed
+                                                      # ones (runs committed under the results earlier are skipped)
+    python benchmarks/studies/table1.py report        # benchmarks/results/table1/ (--reps: bootstrap resamples)
 
 Datasets: the real D4RL ``door-human-v0.hdf5`` and the five generated at full size (``rmrl generate``,
-as ``benchmarks/generated_datasets.py`` sizes them), in the Minari cache (``MINARI_DATASETS_PATH``).
+as ``benchmarks/studies/generated_datasets.py`` sizes them), in the Minari cache (``MINARI_DATASETS_PATH``).
 Methods: ours, IQL and BC (CORL's), 5 seeds, 50k gradient steps, and ours-reuse (ours with the reuse stage,
 beyond the paper) on the two kitchen datasets; CQL and BCQ (17x and 8x an IQL update on this CPU) at
 10k steps x 3 seeds on door-human-v0 only, labelled with their budget. Every run
@@ -24,26 +24,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import (CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
+                    pending, rmrl, row)
 
-from generated_datasets import DATASETS as GENERATED, PAPER_T2, rmrl  # noqa: E402
-
-from rm_torchrl.cli.train import run_grid  # noqa: E402
-from rm_torchrl.errors import RMError  # noqa: E402
-from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices  # noqa: E402
-from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile  # noqa: E402
-from rm_torchrl.report.runs import group_runs, load_runs, read_eval_csv  # noqa: E402
-from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
-from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note  # noqa: E402
-from rm_torchrl.run_format import REUSED, run_identity  # noqa: E402
+from rm_torchrl.cli.train import run_grid
+from rm_torchrl.errors import RMError
+from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
+from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile
+from rm_torchrl.report.runs import group_runs
+from rm_torchrl.report.stats import REPS, aggregate
+from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note
+from rm_torchrl.run_format import REUSED, run_identity
 
 #: Table 1 row -> the dataset option in recipes/dataset/ (rmrl-*: the generated stand-ins, rmrl/<row>-v0)
 DATASETS = {
@@ -57,9 +53,6 @@ DATASETS = {
 KITCHEN = ["kitchen-partial", "kitchen-mixed"]
 #: a dataset option's data.name -> its Table 1 row
 ROWS = {option: row for row, option in DATASETS.items()}
-GENERATED_MARK = " (generated)"
-#: the tuning record: runs whose (dataset, seed) a choice used are not reported
-CHOICES = ROOT / "benchmarks" / "results" / "choices.json"
 #: method -> (gradient steps, datasets it runs on); ours-reuse only where its stage brings data back
 #: (relocate and door have a single event order, so nothing is abandoned there)
 BUDGETS = {"ours": (50_000, list(DATASETS)), "ours-reuse": (50_000, KITCHEN), "iql": (50_000, list(DATASETS)),
@@ -70,26 +63,11 @@ SEEDS = 5  # per dataset: the first five seeds no choice used
 FEWER_SEEDS = {"cql": 3, "bcq": 3}
 #: hand-written analysis beside the generated results.md (kept by the report, linked from it)
 FINDINGS = "findings.md"
-LABELS = {"ours": "Ours", "ours-reuse": "ours-reuse", "iql": "IQL", "bc": "BC", "cql": "CQL", "bcq": "BCQ"}
-#: the paper's Table 1 (average D4RL return over 3 seeds after 0.5M steps); its Table 2 is PAPER_T2
-PAPER = {
-    "kitchen-partial": {"BC": 1.31, "BCQ": 0.46, "IQL": 1.60, "CQL": 0.92, "Ours": 3.24},
-    "kitchen-mixed": {"BC": 1.61, "BCQ": 0.62, "IQL": 1.68, "CQL": 0.53, "Ours": 3.03},
-    "door-human-v0": {"BC": -20.4, "BCQ": -54.8, "IQL": 74.8, "CQL": 75.8, "Ours": 439.5},
-    "door-cloned": {"BC": -56.1, "BCQ": -57.5, "IQL": 20.1, "CQL": -56.5, "Ours": 415.9},
-    "relocate-human": {"BC": 184.2, "BCQ": -25.1, "IQL": 288.6, "CQL": 78.1, "Ours": 633.3},
-    "relocate-cloned": {"BC": -51.6, "BCQ": -56.0, "IQL": -52.4, "CQL": -30.1, "Ours": 492.4},
-}
 
 
 def shown(dataset: str) -> str:
     """A Table 1 row as tables show it: generated stand-ins marked."""
     return dataset + GENERATED_MARK if DATASETS.get(dataset, "").startswith("rmrl-") else dataset
-
-
-def row(dataset: str) -> str:
-    """The Table 1 row of a shown dataset label."""
-    return dataset.removesuffix(GENERATED_MARK)
 
 
 def seeds_of(option: str, seeds=None) -> list[int]:
@@ -116,27 +94,6 @@ def grid(out: str, seeds=None, datasets=None, methods=None) -> list[tuple[None, 
                                         f"seed={seed}", f"out={out}", f"trainer.steps={steps}",
                                         "trainer.checkpoint_every=5000"]))
     return runs
-
-
-def committed(results: Path, name: str, steps: int) -> bool:
-    """Whether ``results/runs/NAME`` holds a finished run: a later session skips it (run directories are not kept)."""
-    csv = results / "runs" / name / "eval.csv"
-    if not csv.is_file():
-        return False
-    steps_done = read_eval_csv(csv)["step"]
-    return len(steps_done) > 0 and int(steps_done[-1]) >= steps
-
-
-def pending(cells, results: Path, extra=()) -> list[tuple[None, list[str]]]:
-    """The cells (``grid``'s form, with ``name``, ``seed`` and ``trainer.steps``) not finished in the committed results."""
-    todo = []
-    for path, overrides in cells:
-        values = dict(o.split("=", 1) for o in overrides)
-        if not committed(results, f"{values['name']}-seed{values['seed']}", int(values["trainer.steps"])):
-            todo.append((path, [*overrides, *extra]))
-    print(f"{len(todo)} runs to do or continue ({len(cells) - len(todo)} finished in the committed results)",
-          file=sys.stderr)
-    return todo
 
 
 def run(args) -> None:
@@ -179,11 +136,6 @@ def missing_cells(runs) -> list[str]:
     return out
 
 
-def _cell(values) -> str:
-    values = np.asarray(values, dtype=float)
-    return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
-
-
 def _hours(rows) -> float:
     return sum(s["machine_seconds"] or 0 for s in rows) / 3600
 
@@ -201,50 +153,6 @@ def machine_time(summary) -> list[str]:
         cells = [f"{_hours(t):.1f} ({len(t)})" if t else "" for t in timed]
         lines.append(f"| {dataset} | " + " | ".join(cells) + f" | {_hours(rows):.1f} |")
     return lines + ["", "In brackets: runs with a recorded time."]
-
-
-def gather(out: Path, results: Path, skipped: list[str]):
-    """This session's runs under ``out`` and the committed copies (``results/runs``) of runs from earlier sessions."""
-    fresh = {p.name for p in out.iterdir()} if out.is_dir() else set()
-    earlier = [p for p in sorted((results / "runs").glob("*")) if p.is_dir() and p.name not in fresh]
-    return load_runs([p for p in [out, *earlier] if p.exists()], skipped=skipped)
-
-
-def collect(runs, results: Path) -> list[dict]:
-    """Copy each run's small files to ``results/runs/<run>/`` and return one summary object per run.
-
-    Copied: ``eval.csv``, the resolved ``recipe.yaml``, ``refine_report.json`` and the run's machine
-    seconds (from its checkpoint); a run that is already the committed copy keeps its files.
-    """
-    (results / "runs").mkdir(parents=True, exist_ok=True)
-    summary = []
-    for run in runs:
-        dest = results / "runs" / run.path.name
-        elapsed = None
-        if dest.resolve() != run.path.resolve():
-            dest.mkdir(exist_ok=True)
-            for name in ("eval.csv", "recipe.yaml", "refine_report.json"):
-                if (run.path / name).is_file():
-                    shutil.copyfile(run.path / name, dest / name)
-            ckpt = run.path / "checkpoint.pt"
-            if ckpt.is_file():
-                from rm_torchrl.train.rundir import load_checkpoint
-
-                elapsed = load_checkpoint(ckpt).get("elapsed_seconds")
-                (dest / "machine_seconds").write_text(f"{float(elapsed):.1f}\n")
-        elif (dest / "machine_seconds").is_file():
-            elapsed = float((dest / "machine_seconds").read_text())
-        algorithm, hparams, refine = run_identity(run.recipe)
-        summary.append({"dataset": row(run.dataset), "source": run.origin, "method": run.method,
-                        "algorithm": algorithm, "hparams": hparams, "refine": refine, "run": dest.name,
-                        "seed": run.seed, "steps": run.final_step,
-                        "eval_episodes": run.episodes, "final_score": float(run.evals["score"][-1]),
-                        "mean_score": float(run.evals["score"].mean()),
-                        "final_return": float(run.evals["return_mean"][-1]), "reward": run.reward,
-                        "final_success": float(run.evals["success_rate"][-1]),
-                        "final_events": float(run.evals["events_mean"][-1]),
-                        "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
-    return summary
 
 
 def current(runs) -> tuple[list, list[str]]:
@@ -297,10 +205,10 @@ def report(args) -> None:
         steps = sorted({s["steps"] for s in rows})
         paper = PAPER.get(row(g.dataset), {}).get(g.method)
         lines.append(f"| {g.dataset} | {g.method} | {'/'.join(f'{s // 1000}k' for s in steps)} × {len(rows)} | "
-                     f"{_cell([s['final_score'] for s in rows])} | "
+                     f"{mean_std([s['final_score'] for s in rows])} | "
                      f"{interval(stats[of[g.dataset]].cell(g.dataset, g.method).iqm, 1)} | "
-                     f"{_cell([s['mean_score'] for s in rows])} | "
-                     f"{_cell([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
+                     f"{mean_std([s['mean_score'] for s in rows])} | "
+                     f"{mean_std([s['final_return'] for s in rows])} | {'' if paper is None else paper} | "
                      f"{np.mean([s['final_success'] for s in rows]):.0%} | {np.mean([s['final_events'] for s in rows]):.2f} |")
     t2 = ["| dataset | original | split | ordered | shorter | paper's (original / split / ordered / shorter) |",
           "|---|---|---|---|---|---|"]
@@ -333,8 +241,8 @@ def report(args) -> None:
             "![learning curves](curves.png)", "", "## Machine time", "",
             "Hours of one core per cell (training and evaluation), summed over its runs:", "", *machine_time(summary), "",
             "## Commands", "", "```bash",
-            "python benchmarks/table1.py setup", "python benchmarks/table1.py run --jobs 2",
-            "python benchmarks/table1.py report", "```", "",
+            "python benchmarks/studies/table1.py setup", "python benchmarks/studies/table1.py run --jobs 2",
+            "python benchmarks/studies/table1.py report", "```", "",
             "Seeds: per dataset the first five that no choice of settings used (`benchmarks/results/choices.json`, "
             "`benchmarks/PROTOCOL.md`); runs on seeds a choice used are listed under \"Runs left out\".", ""]
     if missing:
@@ -355,7 +263,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("command", choices=("setup", "run", "report"))
     p.add_argument("--out", default="runs", help="run directories (not committed)")
-    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "table1"))
+    p.add_argument("--results", default=str(RESULTS / "table1"))
     p.add_argument("--seeds", nargs="+", type=int, default=None,
                    help="these seeds on every dataset (default: per dataset the first five no choice used)")
     p.add_argument("--jobs", type=int, default=2)

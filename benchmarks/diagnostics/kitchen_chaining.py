@@ -1,6 +1,6 @@
 """Why a kitchen policy does or does not chain its events: its own episodes, each skill from the data's starts.
 
-    MUJOCO_GL=egl python benchmarks/kitchen_chaining.py RUN_DIR [--episodes 10] [--starts 10] [--out FILE.json]
+    MUJOCO_GL=egl python benchmarks/diagnostics/kitchen_chaining.py RUN_DIR [--episodes 10] [--starts 10] [--out FILE.json]
 
 Three views of one run's last checkpoint (a FrankaKitchen-v1 run, refined or not):
 
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -33,20 +32,16 @@ import numpy as np
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from iql_diagnostics import diagnose
 
-from iql_diagnostics import diagnose  # noqa: E402
-
-from rm_torchrl import load_policy  # noqa: E402
-from rm_torchrl.data.sources import load_dataset  # noqa: E402
-from rm_torchrl.envs import RMEnvTransform  # noqa: E402
-from rm_torchrl.events import load_event_spec  # noqa: E402
-from rm_torchrl.envs.kitchen_v0 import KITCHEN_TASK_GOALS, KITCHEN_TASK_INDICES  # noqa: E402
-from rm_torchrl.refine import refine  # noqa: E402
-from rm_torchrl.segments import run_starts  # noqa: E402
-from rm_torchrl.train.data import ENCODING_KEY  # noqa: E402
+from rm_torchrl import load_policy
+from rm_torchrl.data.sources import load_dataset
+from rm_torchrl.envs import RMEnvTransform
+from rm_torchrl.events import load_event_spec
+from rm_torchrl.envs.kitchen_v0 import KITCHEN_TASK_GOALS, KITCHEN_TASK_INDICES
+from rm_torchrl.refine import refine
+from rm_torchrl.segments import run_starts
+from rm_torchrl.train.data import ENCODING_KEY
 
 #: FrankaKitchen-v1's flat observation: robot qpos (9), robot qvel (9), object qpos (21), object qvel (20)
 QPOS = np.r_[0:9, 18:39]

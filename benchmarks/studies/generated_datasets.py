@@ -17,10 +17,10 @@ them for a quick check. Datasets go to the Minari cache (``MINARI_DATASETS_PATH`
 
 Generation time is also given against a baseline measured in the same run: the time one process
 needs to step the same environment with random actions for the dataset's number of transitions
-(``generate_throughput.bare_rate``), so ``generation / bare`` below 1 means the workers generate
+(``rm_torchrl.generate.record.bare_rate``), so ``generation / bare`` below 1 means the workers generate
 faster than a single bare env steps.
 
-    MINARI_DATASETS_PATH=/tmp/minari python benchmarks/generated_datasets.py --out benchmarks/results/generated
+    MINARI_DATASETS_PATH=/tmp/minari python benchmarks/studies/generated_datasets.py --out benchmarks/results/generated
 """
 from __future__ import annotations
 
@@ -28,45 +28,22 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-#: the paper's Table 2: transitions after each stage (original, split, ordered, shorter)
-PAPER_T2 = {
-    "kitchen-partial": (136345, 98690, 50114, 22682), "kitchen-mixed": (136345, 83792, 49855, 44298),
-    "door-human-v0": (6704, 5001, 5001, 2261), "door-cloned": (995643, 372086, 372086, 167397),
-    "relocate-human": (9917, 7211, 7211, 7211), "relocate-cloned": (996242, 364207, 364207, 364207),
-}
+from common import GENERATED, PAPER_T2, rmrl
+
 #: the issue's bar: every stage of the three profiled rows within 25% of the paper's Table 2
 TOLERANCE = 0.25
 PROFILED = ("kitchen-partial", "kitchen-mixed", "relocate-human")
-#: name, event spec, alpha (the paper's), and the size flags at full scale
-DATASETS = [
-    ("kitchen-partial", "kitchen", 0.5, {"episodes": 330}),
-    ("kitchen-mixed", "kitchen", 0.9, {"episodes": 330}),
-    ("relocate-human", "relocate", 1.0, {"episodes": 25}),
-    ("door-cloned", "door", 0.5, {"steps": 1_000_000}),
-    ("relocate-cloned", "relocate", 1.0, {"steps": 1_000_000}),
-]
-
-
-def rmrl(*argv: str, capture: bool = False) -> str:
-    """Run ``rmrl ARGV`` in a child process (progress bars pass through to stderr)."""
-    cmd = [sys.executable, "-m", "rm_torchrl.cli.main", *argv]
-    print("$ rmrl " + " ".join(argv), file=sys.stderr, flush=True)
-    out = subprocess.run(cmd, check=True, text=True, stdout=subprocess.PIPE if capture else None)
-    return out.stdout if capture else ""
 
 
 def bare_steps_per_s(name: str, steps: int = 3000) -> float:
     """Random-action env steps/s of the generator's environment, one process (the baseline)."""
-    from generate_throughput import bare_rate
-
     from rm_torchrl.generate import GENERATORS
     from rm_torchrl.generate.cloned import CLONED
+    from rm_torchrl.generate.record import bare_rate
 
     if name in GENERATORS:
         env_id, kwargs = GENERATORS[name].env_id, GENERATORS[name].env_kwargs
@@ -160,10 +137,10 @@ def main() -> None:
     previous = args.out / "results.json"  # rows of generators not re-run this time are kept
     rows = {r["generator"]: r for r in json.loads(previous.read_text())} if previous.is_file() else {}
     with tempfile.TemporaryDirectory() as work:
-        for name, events, alpha, size in DATASETS:
+        for name, events, alpha, size in GENERATED:
             if args.only is None or name in args.only:
                 rows[name] = run_one(name, events, alpha, size, args.scale, args.seed, args.workers, Path(work))
-    rows = [rows[name] for name, *_ in DATASETS if name in rows]
+    rows = [rows[name] for name, *_ in GENERATED if name in rows]
     args.out.mkdir(parents=True, exist_ok=True)
     for fname, text in (("results.md", markdown(rows)), ("results.json", json.dumps(rows, indent=2) + "\n")):
         tmp = args.out / f".{fname}.tmp"

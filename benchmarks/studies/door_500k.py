@@ -1,7 +1,7 @@
 """door-human-v0 at the recipes' own budget: ours, IQL and BC, 500k gradient steps, seeds 0-2.
 
-    python benchmarks/door_500k.py run --jobs 2 --set trainer.threads=1   # resumable: skips finished runs
-    python benchmarks/door_500k.py report                                 # benchmarks/results/door-human-v0-500k/
+    python benchmarks/studies/door_500k.py run --jobs 2 --set trainer.threads=1  # resumable: skips finished runs
+    python benchmarks/studies/door_500k.py report          # benchmarks/results/door-human-v0-500k/
 
 Each run is the README's ``rmrl train dataset=door-human-v0 method=M`` with the recipes' defaults
 (500k steps), evaluating every 10,000 steps over 10 episodes and checkpointing as often, so a stopped
@@ -31,26 +31,21 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import CHOICES, LABELS, PAPER, RESULTS, collect, gather, mean_std, pending
 
-from table1 import LABELS, PAPER, _cell, collect, gather, pending  # noqa: E402
-
-from rm_torchrl.cli.train import run_grid  # noqa: E402
-from rm_torchrl.files import write_atomic  # noqa: E402
-from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices  # noqa: E402
-from rm_torchrl.report.plots import plot_learning_curves  # noqa: E402
-from rm_torchrl.report.runs import group_runs, load_runs  # noqa: E402
-from rm_torchrl.report.stats import REPS, aggregate  # noqa: E402
-from rm_torchrl.run_format import run_identity, run_label, upgrade_recipe  # noqa: E402
-from rm_torchrl.report.tables import CI, interval, iqm_note  # noqa: E402
-from rm_torchrl.train.recipe import load_recipe  # noqa: E402
-from rm_torchrl.train.rundir import recipe_changes  # noqa: E402
+from rm_torchrl.cli.train import run_grid
+from rm_torchrl.files import write_atomic
+from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
+from rm_torchrl.report.plots import plot_learning_curves
+from rm_torchrl.report.runs import group_runs, load_runs
+from rm_torchrl.report.stats import REPS, aggregate
+from rm_torchrl.run_format import run_identity, run_label, upgrade_recipe
+from rm_torchrl.report.tables import CI, interval, iqm_note
+from rm_torchrl.train.recipe import load_recipe
+from rm_torchrl.train.rundir import recipe_changes
 
 DATASET = "door-human-v0"
 METHODS = ("ours", "iql", "bc")
-CHOICES = ROOT / "benchmarks" / "results" / "choices.json"
 #: the first three seeds no choice of settings used on the dataset (seeds 0-2 chose ours' settings: PROTOCOL.md)
 SEEDS = tuple(first_free_seeds(DATASET, read_choices(CHOICES), 3))
 STEPS = 500_000
@@ -216,7 +211,7 @@ def report_arms(args, defaults) -> None:
     fig.tight_layout()
     fig.savefig(results / "curves.png", dpi=110)
     text = ["# Fix candidates for ours' decline at 500k", "",
-            f"Ours on {DATASET} with the 500k recipe and one change each (`ARMS` in `benchmarks/door_500k.py`), "
+            f"Ours on {DATASET} with the 500k recipe and one change each (`ARMS` in `benchmarks/studies/door_500k.py`), "
             f"evaluated over 10 episodes; a row short of {STEPS:,} steps is a probe stopped early. 'after "
             f"{WINDOW // 1000}k' is nan for those.", "", *lines, "", "![curves](arms/curves.png)", ""]
     tmp = Path(args.results) / "arms.md.tmp"
@@ -264,11 +259,11 @@ def report(args) -> None:
         rows = [s for s in summary if s["method"] == g.method]
         cell = stats.cell(DATASET, g.method)
         per_method.append(
-            f"| {g.method} | {len(rows)} | {_cell([s['final_score'] for s in rows])} | "
-            f"{interval(cell.iqm, 1) if cell else ''} | {_cell([s['best_score'] for s in rows])} | "
-            f"{_cell([s['last5_mean'] for s in rows])} | {_cell([s['final_return'] for s in rows])} | "
+            f"| {g.method} | {len(rows)} | {mean_std([s['final_score'] for s in rows])} | "
+            f"{interval(cell.iqm, 1) if cell else ''} | {mean_std([s['best_score'] for s in rows])} | "
+            f"{mean_std([s['last5_mean'] for s in rows])} | {mean_std([s['final_return'] for s in rows])} | "
             f"{PAPER[DATASET].get(g.method, '')} | {np.mean([s['final_success'] for s in rows]):.0%} | "
-            f"{np.mean([s['final_events'] for s in rows]):.2f} | {_cell([s['peak5_mean'] for s in rows])} | "
+            f"{np.mean([s['final_events'] for s in rows]):.2f} | {mean_std([s['peak5_mean'] for s in rows])} | "
             f"{sum(s['holds'] for s in rows)} of {len(rows)} |")
     per_run = ["| run | final score | best score (step) | best 5 in a row (ending at) | mean of the last 5 | "
                "final D4RL return | success | events | machine time |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -290,8 +285,8 @@ def report(args) -> None:
             f"A run holds its score when the mean of its last {LAST} evaluations is at least {HOLD:.0%} of its best "
             f"mean of {LAST} evaluations in a row.",
             "", "![learning curves](curves.png)", "", "## Commands", "", "```bash",
-            "python benchmarks/door_500k.py run --jobs 2 --set trainer.threads=1",
-            "python benchmarks/door_500k.py report", "```", ""]
+            "python benchmarks/studies/door_500k.py run --jobs 2 --set trainer.threads=1",
+            "python benchmarks/studies/door_500k.py report", "```", ""]
     if missing:
         text += ["## Not complete yet", "", *(f"- {line}" for line in missing), ""]
     if skipped:
@@ -307,7 +302,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("command", choices=("run", "report", "adopt"))
     p.add_argument("--out", default="runs", help="run directories (not committed)")
-    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "door-human-v0-500k"))
+    p.add_argument("--results", default=str(RESULTS / "door-human-v0-500k"))
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     p.add_argument("--arms", nargs="+", choices=list(ARMS), default=[],

@@ -6,7 +6,7 @@ Each setting runs in its own process (the flush is process-wide): the recipe's o
 own first window (late / early: 1 means no slowdown), and the flushed run's late window against the
 unflushed one's, both measured in the same invocation.
 
-    python benchmarks/subnormal_slowdown.py [--steps 3000] [--window 250]
+    python benchmarks/speed/subnormal_slowdown.py [--steps 3000] [--window 250]
 """
 from __future__ import annotations
 
@@ -18,8 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 REAL = ROOT.parent / "shared" / "data" / "d4rl" / "door-human-v0.hdf5"
 

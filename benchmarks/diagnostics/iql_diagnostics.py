@@ -1,7 +1,7 @@
 """What an IQL run's critics and actor do on its own training data: advantages, AWR weights, RM states.
 
-    python benchmarks/iql_diagnostics.py RUN_DIR [key=value ...]   # overrides for the run's recipe.yaml
-    python benchmarks/iql_diagnostics.py RUN_DIR --checkpoints A.pt B.pt ...  # earlier checkpoints of the run
+    python benchmarks/diagnostics/iql_diagnostics.py RUN_DIR [key=value ...]   # overrides for the run's recipe.yaml
+    python benchmarks/diagnostics/iql_diagnostics.py RUN_DIR --checkpoints A.pt B.pt ...  # earlier checkpoints of the run
 
 Prints JSON: per RM state (named by its events in order), the number of transitions, the spread of
 the advantage A = min Q(s, a) - V(s), the effective sample size of the AWR weights exp(beta A)
@@ -23,14 +23,11 @@ from pathlib import Path
 import torch
 from tensordict.nn import InteractionType, set_interaction_type
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from rm_torchrl.rm.machine import EventOrderedRM  # noqa: E402
-from rm_torchrl.train.recipe import load_recipe  # noqa: E402
-from rm_torchrl.train.data import ENCODING_KEY, prepare_data  # noqa: E402
-from rm_torchrl.methods.registry import build_method  # noqa: E402
-from rm_torchrl.train.rundir import load_checkpoint  # noqa: E402
+from rm_torchrl.rm.machine import EventOrderedRM
+from rm_torchrl.train.recipe import load_recipe
+from rm_torchrl.train.data import ENCODING_KEY, prepare_data
+from rm_torchrl.methods.registry import build_method
+from rm_torchrl.train.rundir import load_checkpoint
 
 
 def quantiles(x: torch.Tensor) -> dict:

@@ -6,24 +6,19 @@ This runs the ``kitchen-partial`` generator's controller on episodes that plan a
 and prints JSON: steps per completed task, the steps between completions, and the share of steps in
 segments that reached their goal, timed out, or hold by design (grasps, pauses, knob turns).
 
-    python benchmarks/kitchen_pace.py --episodes 12 [--set speed_scale=1.5]
+    python benchmarks/diagnostics/kitchen_pace.py --episodes 12 [--set speed_scale=1.5]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from rm_torchrl.generate import GENERATORS  # noqa: E402
-from rm_torchrl.generate.kitchen import GOAL_TASKS, KitchenPlayController  # noqa: E402
-from rm_torchrl.generate.record import attempt_seeds, make_env  # noqa: E402
+from rm_torchrl.generate import GENERATORS
+from rm_torchrl.generate.kitchen import GOAL_TASKS, KitchenPlayController
+from rm_torchrl.generate.record import attempt_seeds, make_env
 
 
 class Traced(KitchenPlayController):

@@ -14,7 +14,7 @@ stepping rate with uniform random actions (``env.step`` only, resets included), 
 
 each with ``ratio_to_bare`` = generator rate / bare rate of its env. Run with OMP_NUM_THREADS=1.
 
-    python benchmarks/generate_throughput.py --relocate-episodes 5 --door-episodes 20 --kitchen-episodes 5
+    python benchmarks/speed/generate_throughput.py --relocate-episodes 5 --door-episodes 20 --kitchen-episodes 5
 """
 from __future__ import annotations
 
@@ -25,28 +25,9 @@ import platform
 import time
 import warnings
 
-import numpy as np
+from rm_torchrl.generate.record import bare_rate
 
 warnings.filterwarnings("ignore")
-
-
-def bare_rate(env_id: str, steps: int, seed: int = 0, env_kwargs: dict | None = None) -> dict:
-    from rm_torchrl.generate.record import make_env
-
-    env = make_env(env_id, 200, env_kwargs)
-    rng = np.random.default_rng(seed)
-    env.action_space.seed(seed)
-    env.reset(seed=seed)
-    low, high = env.action_space.low, env.action_space.high
-    actions = rng.uniform(low, high, size=(steps,) + low.shape).astype(np.float32)
-    t0 = time.perf_counter()
-    for a in actions:
-        _, _, term, trunc, _ = env.step(a)
-        if term or trunc:
-            env.reset()
-    seconds = time.perf_counter() - t0
-    env.close()
-    return {"steps": steps, "seconds": round(seconds, 3), "steps_per_s": steps / seconds}
 
 
 def main(argv=None) -> int:

@@ -7,7 +7,7 @@ one evaluation of ``--episodes`` episodes is timed in both modes on the same pol
 gymnasium's own ``env.step`` with random actions on the same env id is timed in the same process as
 the baseline. Prints one JSON object:
 
-    python benchmarks/eval_throughput.py [--steps 1000] [--episodes 10] [--repeats 2]
+    python benchmarks/speed/eval_throughput.py [--steps 1000] [--episodes 10] [--repeats 2]
 
 ``max_abs_score_diff`` is the largest difference between the two modes' normalised scores of the
 same episode (episode i of both starts from the same state). FrankaKitchen-v1 draws observation
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import torch
 
-from generate_throughput import bare_rate  # gymnasium's env.step with random actions
 from rm_torchrl import load_policy
+from rm_torchrl.generate.record import bare_rate  # gymnasium's env.step with random actions
 from rm_torchrl.train import load_recipe, train
 from rm_torchrl.train.evaluate import Evaluator, normalized_score
 

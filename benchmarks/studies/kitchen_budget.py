@@ -1,21 +1,18 @@
 """The kitchen-budget probe's table: seed 0 of ours, IQL and BC on kitchen-partial at 100k steps
 against the same seed's 50k Table 1 runs, from the committed eval CSVs.
 
-    python benchmarks/kitchen_budget.py > /tmp/table.md     # pasted into benchmarks/results/kitchen-budget/README.md
+    python benchmarks/studies/kitchen_budget.py > /tmp/table.md     # pasted into benchmarks/results/kitchen-budget/README.md
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from common import RESULTS
 
-from rm_torchrl.report.runs import read_eval_csv  # noqa: E402
+from rm_torchrl.report.runs import read_eval_csv
 
-RESULTS = ROOT / "benchmarks" / "results"
 TASK = 25.0  # FrankaKitchen score points per completed task
 
 

@@ -12,13 +12,13 @@ seeds; the control arms are candidates too (the recipe takes their expectile and
 one of them wins). Arms equal to the printed precision go to the later one in the table (for
 ``--temperatures`` in ascending order, the larger beta: it keeps more of IQL's advantage weighting).
 
-    python benchmarks/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
+    python benchmarks/studies/decline_study.py --out runs/decline-study --results benchmarks/results/decline-study
 
 ``--dataset OPTION`` trains ``dataset=OPTION method=ours`` instead of the door-human-v0 recipe, and
 ``--temperatures`` adds arms with the recipe's lambda and these inverse temperatures beta, e.g. the
 kitchen study (``benchmarks/results/kitchen-temperature``)::
 
-    python benchmarks/decline_study.py --dataset rmrl-kitchen-partial --temperatures 0 0.5 1 3 10 \
+    python benchmarks/studies/decline_study.py --dataset rmrl-kitchen-partial --temperatures 0 0.5 1 3 10 \
         --lambdas --adroit-lambdas --tanh-normal-lambdas --steps 20000 --last 3 --set eval.every=4000 \
         --out runs/kitchen-temperature --results benchmarks/results/kitchen-temperature
 """
@@ -27,19 +27,17 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from common import RESULTS, ROOT
 
-from rm_torchrl.cli.train import run_grid  # noqa: E402
-from rm_torchrl.events.spec import load_event_spec  # noqa: E402
-from rm_torchrl.report.runs import read_eval_csv, read_scalars  # noqa: E402
-from rm_torchrl.train.recipe import load_recipe  # noqa: E402
-from rm_torchrl.train.evaluate import SCORE_RANGES  # noqa: E402
+from rm_torchrl.cli.train import run_grid
+from rm_torchrl.events.spec import load_event_spec
+from rm_torchrl.report.runs import read_eval_csv, read_scalars
+from rm_torchrl.train.recipe import load_recipe
+from rm_torchrl.train.evaluate import SCORE_RANGES
 
 RECIPE = ROOT / "recipes" / "door-human-v0-ours.yaml"
 
@@ -200,7 +198,7 @@ def write_results(args, arms: dict) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
-    p.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decline-study"))
+    p.add_argument("--results", default=str(RESULTS / "decline-study"))
     p.add_argument("--lambdas", nargs="*", default=["0", "1e-4", "1e-3", "1e-2"])
     p.add_argument("--adroit-lambdas", nargs="*", default=["0", "1e-4"],
                    help="control arms with IQL's Adroit expectile and temperature (0.7, 0.5)")
