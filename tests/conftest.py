@@ -1,4 +1,4 @@
-"""Fixtures shared by the test files."""
+"""Fixtures shared by the test files (their helpers: ``helpers.py``)."""
 from __future__ import annotations
 
 import os
@@ -6,18 +6,7 @@ from pathlib import Path
 
 import pytest
 
-
-def generate_cli(*argv: str) -> int:
-    """``rmrl generate ARGV`` through the subcommand's own parser and ``run``."""
-    import argparse
-
-    from rm_torchrl.cli.generate import add_arguments, run
-
-    parser = argparse.ArgumentParser(prog="rmrl generate")
-    add_arguments(parser)
-    args = parser.parse_args(list(argv))
-    args.command = "generate"
-    return run(args)
+from helpers import write_d4rl
 
 
 def load_benchmark(name: str):
@@ -41,9 +30,10 @@ def load_benchmark(name: str):
     return module
 
 
-def leftovers(cache: Path) -> list[str]:
-    """Everything in a Minari cache, hidden temporary directories included."""
-    return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    """A tiny D4RL-format file of door-like episodes, one per test module."""
+    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import reference as ref
+from helpers import make_file
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.events import EventSpec, builtin_specs, load_event_spec
@@ -382,7 +383,6 @@ def test_events_that_hold_from_the_first_step_are_named_not_reported_as_never_ha
 def test_rmrl_refine_names_the_events_holding_at_every_first_step(tmp_path, capsys):
     """A real D4RL file and YAML spec: obs = [1000 * episode + t, t, episode]; t >= 0 and episode >= 0 always hold."""
     from rm_torchrl.cli.main import main
-    from test_d4rl_source import make_file
 
     path, _ = make_file(tmp_path, [6, 7, 5])
     spec = tmp_path / "spec.yaml"
@@ -413,7 +413,6 @@ def test_event_names_with_surrounding_spaces_are_refused(name):
 
 def test_a_yaml_event_name_with_an_arrow_is_a_one_line_cli_error(tmp_path, capsys):
     from rm_torchrl.cli.main import main
-    from test_d4rl_source import make_file
 
     path, _ = make_file(tmp_path, [6, 7])
     spec = tmp_path / "spec.yaml"

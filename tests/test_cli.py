@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 
 import h5py
-import numpy as np
 import pytest
 import torch
 import yaml
@@ -23,6 +22,8 @@ from tensordict import TensorDict
 from rm_torchrl.cli.main import main
 from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.train.recipe import load_recipe
+
+from helpers import assert_error, error_line, run, write_door_h5
 
 ROOT = Path(__file__).resolve().parents[1]
 D4RL = ROOT.parent / "shared" / "data" / "d4rl"
@@ -34,33 +35,6 @@ DOOR_EVENTS = ["reach_handle", "door_0.2", "door_1.0", "door_1.35"]
 KITCHEN_EVENTS = ["microwave", "kettle", "light switch", "slide cabinet"]
 
 
-def write_door_h5(path: Path, n_eps: int = 6, T: int = 40, events: bool = True) -> Path:
-    """D4RL door layout (39-dim obs, 28-dim action); obs[0] jumps by 100 between episodes."""
-    obs, term = [], []
-    for e in range(n_eps):
-        t = np.arange(T, dtype=np.float32)
-        o = np.zeros((T, 39), np.float32)
-        o[:, 0] = 100.0 * e + 0.01 * t
-        if events:
-            o[:, 35] = np.maximum(0.5 - 0.05 * t, 0.05)                    # |palm - handle|
-            o[:, 28] = np.clip((t - 10) * (0.08 + 0.02 * e), 0, 1.6)       # hinge angle
-        else:
-            o[:, 35] = 0.5                                                 # never near the handle
-        obs.append(o)
-        end = np.zeros(T, bool)
-        end[-1] = True
-        term.append(end)
-    obs = np.concatenate(obs)
-    n = len(obs)
-    with h5py.File(path, "w") as f:
-        f["observations"] = obs
-        f["actions"] = np.zeros((n, 28), np.float32)
-        f["rewards"] = np.zeros(n, np.float32)
-        f["terminals"] = np.concatenate(term)
-        f["timeouts"] = np.zeros(n, bool)
-    return path
-
-
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> str:
     return str(write_door_h5(tmp_path_factory.mktemp("tiny") / "door-tiny.hdf5"))
@@ -69,31 +43,6 @@ def tiny(tmp_path_factory) -> str:
 @pytest.fixture(scope="module")
 def no_events(tmp_path_factory) -> str:
     return str(write_door_h5(tmp_path_factory.mktemp("none") / "door-none.hdf5", events=False))
-
-
-def run(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def error_line(err: str, command: str) -> str:
-    """The one error line of stderr, after progress output ('\\r'-redrawn bars, 'loading ...')."""
-    assert "Traceback" not in err, err
-    lines = [line.strip() for line in err.replace("\r", "\n").split("\n") if line.strip()]
-    assert lines, "nothing on stderr"
-    prefix = f"rmrl {command}: error: "
-    assert sum(prefix in line for line in lines) == 1, err
-    assert lines[-1].startswith(prefix), f"the error is not a single last line:\n{err}"
-    return lines[-1][len(prefix):]
-
-
-def assert_error(capsys, command, argv, match):
-    code, out, err = run(capsys, *argv)
-    assert code == 2, (code, out, err)
-    message = error_line(err, command)
-    assert match in message, message
-    return message
 
 
 def load_report(out: Path) -> dict:

@@ -19,62 +19,14 @@ from rm_torchrl.data.d4rl import episode_end_flags, load_d4rl_hdf5
 from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
 
+from helpers import flags, make_file, refused_by_train_refine_and_import, steps_of, write_d4rl, write_h5
+
 D4RL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "d4rl"
 DOOR = DOOR_HUMAN_V0  # shipped in the package
 KITCHEN = D4RL / "kitchen-complete-v0.hdf5"
 
 DOOR_LENGTHS = [300] * 5 + [293, 284, 265, 265, 291, 247, 236, 271, 242, 277, 257, 260, 223, 257, 277, 288, 289,
                             256, 226, 225]
-
-
-def steps_of(lengths):
-    """Observations (N, 3), actions (N, 2), rewards (N,) and the row index of each episode's last step."""
-    obs, ep_of_row = [], []
-    for e, T in enumerate(lengths):
-        t = np.arange(T, dtype=np.float32)
-        obs.append(np.stack([1000.0 * e + t, t, np.full(T, e, np.float32)], -1))
-        ep_of_row += [e] * T
-    obs = np.concatenate(obs).astype(np.float32)
-    n = obs.shape[0]
-    rows = np.arange(n, dtype=np.float32)
-    actions = np.stack([rows, -rows], -1).astype(np.float32)
-    rewards = (0.5 * rows).astype(np.float32)
-    last = np.cumsum(lengths) - 1
-    return obs, actions, rewards, last
-
-
-def write_h5(path, obs, actions, rewards, terminals=None, timeouts=None, skip=(), **extra):
-    n = len(obs)
-    arrays = {
-        "observations": obs,
-        "actions": actions,
-        "rewards": rewards,
-        "terminals": np.zeros(n, bool) if terminals is None else terminals,
-        "timeouts": np.zeros(n, bool) if timeouts is None else timeouts,
-        **extra,
-    }
-    with h5py.File(path, "w") as f:
-        for k, v in arrays.items():
-            if k not in skip and v is not None:
-                f.create_dataset(k, data=v)
-    return path
-
-
-def flags(n, rows):
-    out = np.zeros(n, bool)
-    out[np.asarray(rows, dtype=int)] = True
-    return out
-
-
-def make_file(tmp_path, lengths, ends="terminals", name="d.hdf5", **kw):
-    """A file whose episodes of ``lengths`` steps end with ``ends`` flags (terminals / timeouts / none)."""
-    obs, actions, rewards, last = steps_of(lengths)
-    n = len(obs)
-    term = flags(n, last) if ends == "terminals" else np.zeros(n, bool)
-    tout = flags(n, last) if ends == "timeouts" else np.zeros(n, bool)
-    kw.setdefault("terminals", term)
-    kw.setdefault("timeouts", tout)
-    return write_h5(tmp_path / name, obs, actions, rewards, **kw), (obs, actions, rewards, last)
 
 
 # --------------------------------------------------------------------------------------------
@@ -538,9 +490,6 @@ def test_big_endian_float64_arrays_load_like_native_ones(tmp_path):
 
 
 def test_values_beyond_float32_are_refused_by_refine_import_and_train(tmp_path, capsys, cache):
-    from test_run_safety import refused_by_train_refine_and_import
-    from test_train import write_d4rl
-
     bad = write_d4rl(tmp_path / "bad.hdf5", transitions=400)
     with h5py.File(bad, "r+") as f:
         for key in ("observations", "rewards"):

@@ -15,8 +15,7 @@ from rm_torchrl.cli.main import main
 from rm_torchrl.envs.d4rl_reward import ADROIT_NOTICE
 from rm_torchrl.train import load_recipe, train
 
-from test_cli import error_line
-from test_train import make_recipe, write_d4rl
+from helpers import error_line, make_recipe, write_d4rl
 
 SEED_MAX = 2 ** 32 - 1
 

@@ -18,8 +18,7 @@ from rm_torchrl.refine.pipeline import refine
 from rm_torchrl.segments import run_starts
 from rm_torchrl.train import load_recipe, train
 
-from conftest import leftovers
-from test_train import make_recipe, policy_inputs, write_d4rl
+from helpers import leftovers, make_recipe, policy_inputs, write_d4rl
 
 NAME = "test/door-refined-v0"
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 import minari
 import numpy as np
 import pytest
-from conftest import generate_cli, leftovers
 
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, Generator, RelocateController, generate_dataset
 from rm_torchrl.refine import refine
+
+from helpers import generate_cli, leftovers
 
 NAME = "rmrl/relocate-test-v0"
 SEED = 3

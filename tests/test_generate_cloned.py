@@ -10,7 +10,6 @@ from __future__ import annotations
 import minari
 import numpy as np
 import pytest
-from conftest import leftovers
 
 from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.data.minari import load_minari
@@ -18,6 +17,8 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY
 from rm_torchrl.generate.cloned import NoisyBCPolicy, bc_weights, generate_cloned, train_bc
 from rm_torchrl.refine import refine
+
+from helpers import leftovers
 
 DOOR = str(DOOR_HUMAN_V0)  # shipped in the package
 NAME = "rmrl/door-cloned-test-v0"

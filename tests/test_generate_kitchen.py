@@ -10,13 +10,14 @@ from __future__ import annotations
 import minari
 import numpy as np
 import pytest
-from conftest import generate_cli
 
 from rm_torchrl.data.minari import load_minari
 from rm_torchrl.errors import RMError
 from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
 from rm_torchrl.generate.kitchen import CANONICAL, GOAL_TASKS, TASKS, THRESHOLD, KitchenPlayController
 from rm_torchrl.refine import refine
+
+from helpers import generate_cli
 
 PARTIAL, MIXED = "rmrl/kitchen-partial-test-v0", "rmrl/kitchen-mixed-test-v0"
 SEED = 0  # attempt 1 of seed 0 plays all four goal tasks and completes them

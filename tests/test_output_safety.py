@@ -24,8 +24,7 @@ from rm_torchrl.cli.main import main
 from rm_torchrl.data.d4rl_to_minari import MINARI_MARKER, import_d4rl
 from rm_torchrl.data.store import MARKER
 
-from conftest import leftovers
-from test_cli import assert_error, run, write_door_h5
+from helpers import assert_error, leftovers, run, write_door_h5
 
 
 @pytest.fixture(scope="module")

@@ -8,12 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from rm_torchrl.cli import report as cli_report
 from rm_torchrl.errors import RMError
@@ -22,10 +20,10 @@ from rm_torchrl.report.runs import method_option
 from rm_torchrl.run_format import run_label
 from rm_torchrl.report.tables import results_table, stages_table
 
+from helpers import EVAL_HEADER, PNG_MAGIC, table_rows, write_run
+
 pytest.importorskip("matplotlib")
 
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-HEADER = "step,return_mean,return_std,score,success_rate,events_mean,episodes"
 SEEDS = (0, 1, 2)
 STEPS = (2000, 4000, 6000)
 
@@ -42,41 +40,6 @@ STAGES = {
     "relocate-cloned": {"original": 996242, "split": 364207, "ordered": 364207, "shorter": 364207},
 }
 RECIPE_NAMES = {"BC": "{d}-bc", "BCQ": "{d}-bcq", "IQL": "{d}-iql", "CQL": "{d}_cql", "Ours": "{d}"}
-
-
-def write_run(root: Path, name: str, seed: int, method: str, refine: bool, score: str, finals: dict,
-              steps=None, stages: dict | None = None, source: str = "", reuse: bool = False,
-              dataset: str | None = None) -> Path:
-    """A run directory as the trainer wrote it before ``data.refine`` named the treatment (a boolean, the
-    method name carrying the rest); ``finals`` maps each evaluated step to the metric. ``data.name`` is
-    ``dataset``, by default ``name`` without its method suffix. ``data.reuse`` is written only when ``reuse``
-    (runs from before the reuse stage have no such key)."""
-    steps = tuple(sorted(finals)) if steps is None else steps
-    dataset = dataset or re.sub(r"[-_](ours-reuse|ours|iql-raw|iql|bcq|bc|cql)$", "", name)
-    run = root / f"{name}-seed{seed}"
-    (run / "logs" / "scalars").mkdir(parents=True)
-    recipe = {
-        "name": name, "seed": seed, "out": str(root), "resume": False,
-        "data": {"name": dataset, "source": source or f"../shared/data/d4rl/{name}.hdf5", "episode_ends": "auto",
-                 "refine": refine, "events": "door" if refine else "", "alpha": 0.5, "constraints": [],
-                 **({"reuse": True} if reuse else {})},
-        "method": {"name": method},
-        "trainer": {"steps": max(steps, default=6000), "batch_size": 256},
-        "eval": {"env": "AdroitHandDoor-v1", "every": 2000, "episodes": 10, "score": score},
-    }
-    (run / "recipe.yaml").write_text(yaml.safe_dump(recipe, sort_keys=False))
-    lines = [HEADER]
-    for step in steps:
-        value = finals[step]
-        ret = value if not score else value * 10  # the return differs from the score when scored
-        lines.append(f"{step},{ret},1.5,{value},0.5,2.0,10")
-    (run / "eval.csv").write_text("\n".join(lines) + "\n")
-    (run / "logs" / "scalars" / "loss_actor.csv").write_text("".join(f"{s},{-s / 1000}\n" for s in steps))
-    if stages is not None:
-        report = {"stages": stages, "order": ["reach_handle", "door_0.2"], "order_score": 25,
-                  "groups": {"e0->reach_handle": 25}, "events": ["reach_handle", "door_0.2"], "alpha": 0.5}
-        (run / "refine_report.json").write_text(json.dumps(report, indent=2))
-    return run
 
 
 def build_runs(root: Path) -> Path:
@@ -119,16 +82,6 @@ def report_output(reported):
     with contextlib.redirect_stdout(stdout):
         assert cli_report.run(args(root, out=out)) == 0
     return stdout.getvalue()
-
-
-def table_rows(text: str) -> dict[str, list[str]]:
-    """First-column label -> the other cells of every Markdown table row in ``text``."""
-    rows = {}
-    for line in text.splitlines():
-        if line.startswith("| ") and not line.startswith("|---"):
-            cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
-            rows[cells[0]] = cells[1:]
-    return rows
 
 
 # --- labels ----------------------------------------------------------------------------------
@@ -393,7 +346,7 @@ def test_error_no_runs(tmp_path):
 
 def test_error_no_runs_names_a_run_without_recipe(tmp_path):
     (tmp_path / "r").mkdir()
-    (tmp_path / "r" / "eval.csv").write_text(HEADER + "\n2000,1,1,1,1,1,10\n")
+    (tmp_path / "r" / "eval.csv").write_text(EVAL_HEADER + "\n2000,1,1,1,1,1,10\n")
     with pytest.raises(RMError, match=r"has eval\.csv but no recipe\.yaml"):
         find_run_dirs([tmp_path])
 
@@ -427,8 +380,8 @@ def test_error_when_no_run_has_evaluations(tmp_path):
 
 
 @pytest.mark.parametrize("body, problem", [
-    (HEADER + "\n2000,1.0,oops,1,1,1,10\n", r"eval\.csv, line 2: non-numeric value"),
-    (HEADER + "\n2000,1.0,1,1\n", r"eval\.csv, line 2: 4 fields, the header has 7"),
+    (EVAL_HEADER + "\n2000,1.0,oops,1,1,1,10\n", r"eval\.csv, line 2: non-numeric value"),
+    (EVAL_HEADER + "\n2000,1.0,1,1\n", r"eval\.csv, line 2: 4 fields, the header has 7"),
     ("when,what\n1,2\n", r"eval\.csv: unexpected header 'when,what'"),
     ("", r"eval\.csv is empty"),
     (b"\xff\xfe\x00garbage", r"eval\.csv is not a readable CSV file"),

@@ -15,7 +15,7 @@ from rm_torchrl.cli import report as cli_report
 from rm_torchrl.report import group_runs, load_runs
 from rm_torchrl.report.choices import first_free_seeds, read_choices
 from rm_torchrl.report.stats import REPS, _rliable, aggregate, improvement, iqm
-from test_report import PNG_MAGIC, table_rows, write_run
+from helpers import PNG_MAGIC, table_rows, write_run
 
 pytest.importorskip("matplotlib")
 metrics = pytest.importorskip("rliable.metrics")

@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -23,13 +22,7 @@ from rm_torchrl.cli.main import main
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 
-from test_sweeps import _alive, signal_while_training
-from test_train import make_recipe, write_d4rl
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
+from helpers import alive, make_recipe, refused_by_train_refine_and_import, signal_while_training, write_d4rl
 
 
 def spawn(*argv: str) -> subprocess.Popen:
@@ -66,19 +59,6 @@ def test_nan_in_the_data_is_refused_by_train_refine_and_import(tmp_path, dataset
         f[key] = values
     refused_by_train_refine_and_import(tmp_path, bad, f"{key} contain NaN or inf in 1 row(s), first at rows [5]",
                                        capsys, cache)
-
-
-def refused_by_train_refine_and_import(tmp_path: Path, bad: Path, message: str, capsys, cache) -> None:
-    """``rmrl train``, ``refine`` and ``import-d4rl`` on the file ``bad`` all exit 2 with ``message``
-    and write nothing: no refined output, no checkpoint, no Minari dataset."""
-    assert main(["train", str(make_recipe(tmp_path, bad)), "--no-progress"]) == 2
-    assert main(["refine", "--dataset", str(bad), "--events", "door", "--out", str(tmp_path / "refined")]) == 2
-    assert main(["import-d4rl", str(bad), "--out-name", "test/bad-v0"]) == 2
-    err = capsys.readouterr().err
-    assert err.count(message) == 3, err
-    assert "Traceback" not in err
-    assert not (tmp_path / "refined").exists() and not any((tmp_path / "runs").rglob("*.pt"))
-    assert not any(cache.rglob("bad-v0*"))
 
 
 @pytest.mark.parametrize("override", ["optim.lr_actor=nan", "method.iql.temperature=inf", "trainer.tau=-inf"])
@@ -265,7 +245,7 @@ def test_a_signal_to_run_many_reaches_its_runs_which_checkpoint_and_none_outlive
     runs = [tmp_path / "runs" / f"tiny-seed{k}" for k in range(2)]
     proc, err, children = signal_while_training(
         [sys.executable, "-c", GRID, str(recipe), "trainer.steps=1000000", *steps], runs, signum)
-    assert _alive(children, wait=60) == []
+    assert alive(children, wait=60) == []
     stopped = [torch.load(r / "checkpoint.pt", weights_only=True)["step"] for r in runs]
     assert all(0 < s < 1000000 for s in stopped), stopped
     assert not (tmp_path / "runs" / "tiny-seed2").exists()

@@ -23,7 +23,7 @@ from rm_torchrl.run_format import HPARAMS, REFINE, run_label
 from rm_torchrl.train.config import Recipe
 from rm_torchrl.train.recipe import RECIPES, scaled_to_budget
 
-from test_train import make_recipe, write_d4rl
+from helpers import alive, make_recipe, signal_while_training
 
 DATASETS = sorted(p.stem for p in (RECIPES / "dataset").glob("*.yaml"))
 METHODS = sorted(p.stem for p in (RECIPES / "method").glob("*.yaml"))  # the method options
@@ -64,11 +64,6 @@ def _merge(a: dict, b: dict) -> dict:
     for key, value in b.items():
         out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
     return out
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
 
 
 def tiny(tmp_path: Path, dataset: Path, text: str = "") -> Path:
@@ -348,48 +343,6 @@ def test_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_
         torch.testing.assert_close(value, b["loss"][key], rtol=0, atol=0, msg=key)
 
 
-def _children(pid: int) -> list[int]:
-    """The live processes whose parent is ``pid`` (from /proc)."""
-    found = []
-    for proc in Path("/proc").iterdir():
-        try:
-            fields = dict(line.split(":", 1) for line in (proc / "status").read_text().splitlines() if ":" in line)
-        except (OSError, ValueError):
-            continue
-        if fields.get("PPid", "").strip() == str(pid) and not fields.get("State", "").strip().startswith("Z"):
-            found.append(int(proc.name))
-    return found
-
-
-def _alive(pids: list[int], wait: float = 15) -> list[int]:
-    """Those of ``pids`` still running after up to ``wait`` seconds (a zombie counts as gone)."""
-    end = time.time() + wait
-    while True:
-        alive = [p for p in pids if Path(f"/proc/{p}").exists()
-                 and not (Path(f"/proc/{p}/stat").read_text().split(") ")[-1].startswith("Z"))]
-        if not alive or time.time() > end:
-            return alive
-        time.sleep(0.2)
-
-
-def signal_while_training(cmd: list[str], runs: list[Path], signum: int) -> tuple[subprocess.Popen, str, list[int]]:
-    """Starts ``cmd``, waits until every run of ``runs`` has logged a loss, sends ``signum`` and
-    waits for the process: returns it, its stderr and the children it had when signalled."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        end = time.time() + 180
-        while not all((r / "logs" / "scalars" / "loss_actor.csv").exists() for r in runs):  # every run trains
-            assert proc.poll() is None and time.time() < end, proc.communicate()
-            time.sleep(0.05)
-        children = _children(proc.pid)
-        proc.send_signal(signum)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
-    return proc, err, children
-
-
 @pytest.mark.parametrize("jobs,signum", [(2, signal.SIGTERM), (1, signal.SIGTERM), (2, signal.SIGINT)])
 def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_the_rerun_resumes(
         tmp_path, dataset, jobs, signum):
@@ -411,7 +364,7 @@ def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_th
             "run the same command again to resume them") in err, err
     assert f"{out / 'tiny-seed2'}: not started, the sweep was stopped" in err
     assert not (out / "tiny-seed2" / "checkpoint.pt").exists() and "Traceback" not in err
-    assert _alive(workers) == []  # no job trains on after its parent
+    assert alive(workers) == []  # no job trains on after its parent
     if signum == signal.SIGINT:
         return  # the same forwarding as SIGTERM's: the rerun is tested once per launcher mode
     target = max(steps) + 20

@@ -14,34 +14,10 @@ import torch
 import yaml
 
 from rm_torchrl.cli.main import main
-from rm_torchrl.data.synthetic import make_door_like
-from rm_torchrl.data.synthetic import write_door_like_hdf5
 from rm_torchrl.errors import RMError
 from rm_torchrl.train import load_recipe, train
 
-
-def write_d4rl(path: Path, transitions: int = 4000, episode_length: int = 100, seed: int = 0) -> Path:
-    """A D4RL-format file of door-like episodes (one step more per episode than transitions)."""
-    return write_door_like_hdf5(path, transitions, episode_length, seed)
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
-
-
-def make_recipe(tmp_path: Path, dataset: Path, text: str = "", refine: str | None = "paper") -> Path:
-    """A plain recipe on the tiny data: the schema's algorithm (IQL) on the data the paper's refinement makes
-    (``refine``; None leaves data.refine to what the recipe composes), small networks, a short budget."""
-    path = tmp_path / "recipe.yaml"
-    treatment = f"refine: {refine}, " if refine else ""
-    path.write_text(
-        f"name: tiny\nout: {tmp_path / 'runs'}\n"
-        f"data: {{source: {dataset}, events: door, {treatment}alpha: 0.5}}\n"
-        "network: {hidden: [32, 32]}\n"
-        "trainer: {steps: 200, batch_size: 64, log_every: 20, checkpoint_every: 100, threads: 1}\n" + text
-    )
-    return path
+from helpers import make_recipe, policy_inputs
 
 
 def option_recipe(tmp_path: Path, dataset: Path, method: str, text: str = "") -> Path:
@@ -53,13 +29,6 @@ def option_recipe(tmp_path: Path, dataset: Path, method: str, text: str = "") ->
     path.write_text(f"defaults: [rmrl_schema, {{method: {method}}}, _self_]\n"
                     + body.replace("threads: 1}", "threads: 1, compile: false}"))
     return path
-
-
-def policy_inputs(run_dir: Path) -> list[str]:
-    """The keys the policy of ``run_dir``'s checkpoint reads (its weights load: they were trained on them)."""
-    from rm_torchrl import load_policy
-
-    return list(load_policy(run_dir, env="AdroitHandDoor-v1").policy.in_keys)
 
 
 def old_layout(recipe: dict) -> dict:
