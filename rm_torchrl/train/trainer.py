@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -156,13 +157,38 @@ class _StopOnSignal:
             previous(self.signum, None)
 
 
+class Stopwatch:
+    """Seconds since it started, and those spent inside :meth:`excluding` blocks left out of :attr:`counted`
+    (updates per second count gradient steps, not evaluation)."""
+
+    def __init__(self):
+        self.started = time.perf_counter()
+        self.excluded = 0.0
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.started
+
+    @property
+    def counted(self) -> float:
+        return self.seconds - self.excluded
+
+    @contextmanager
+    def excluding(self):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.excluded += time.perf_counter() - started
+
+
 def _first_step(method, terms, batch):
     """The first update, in which ``torch.compile`` compiles (saying so: it takes a while before the
     first step shows); if compiling fails, say so and train eagerly."""
     if method.compiled is None:
         return gradient_step(method, terms, batch)
     tqdm.write("compiling the update with torch.compile (first step; about a minute on CPU) ...", file=sys.stderr)
-    started = time.perf_counter()
+    watch = Stopwatch()
     try:
         losses = gradient_step(method, terms, batch)
     except NonFinite:
@@ -172,7 +198,7 @@ def _first_step(method, terms, batch):
         tqdm.write(f"warning: torch.compile failed ({type(err).__name__}: {str(err).splitlines()[0][:200]}); "
                    "training without it (set trainer.compile=false to skip the attempt)", file=sys.stderr)
         return gradient_step(method, terms, batch)
-    tqdm.write(f"compiled in {time.perf_counter() - started:.0f} s", file=sys.stderr)
+    tqdm.write(f"compiled in {watch.seconds:.0f} s", file=sys.stderr)
     return losses
 
 
@@ -217,7 +243,46 @@ def _kept(ckpt_path: Path, hint: str = " (continue with resume=true)") -> str:
 
 
 def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) -> Path:
-    ckpt_path = run_dir / CHECKPOINT
+    _set_threads_and_seeds(recipe)
+    device = resolve_device(recipe.trainer.device)
+    data = prepare_data(recipe, device)
+    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
+                          data.action_dim, device)
+    if recipe.trainer.compile:
+        compile_method(method)
+    generator = torch.Generator().manual_seed(recipe.seed)
+    evaluator = _make_evaluator(recipe, data, method, device)
+    if state is None:  # a resume keeps the folder's recipe.yaml until its first update has run
+        _write_recipe(recipe, run_dir)
+    if data.report is not None:
+        write_atomic(run_dir / REFINE_FILE, json.dumps(data.report, indent=2) + "\n")
+    start, elapsed_before = (0, 0.0) if state is None else _resume(state, method, generator, device, run_dir)
+    run = _Run(recipe, run_dir, data, method, generator, evaluator, device, start, elapsed_before, progress)
+
+    steps, last = recipe.trainer.steps, recipe.trainer.stop_at or recipe.trainer.steps
+    completed = start
+    with _StopOnSignal() as stop:
+        for step in range(start + 1, last + 1):
+            if stop.signum is not None:
+                break
+            losses = run.update(step)
+            if step == start + 1:
+                run.after_first_update(resumed=state is not None)
+            if step % recipe.trainer.log_every == 0 or step == steps:
+                run.log(step, losses)
+            if evaluator is not None and (step % recipe.eval.every == 0 or step == steps):
+                run.evaluate(step)
+            if step % recipe.trainer.checkpoint_every == 0:
+                run.checkpoint(step)
+            completed = step
+            run.show(step)
+        run.checkpoint(completed)  # before the bar's last line: a parent that died leaves a broken pipe to write to
+        run.bar.close()
+    _say_where_it_stopped(stop, completed, steps)
+    return run_dir
+
+
+def _set_threads_and_seeds(recipe: Recipe) -> None:
     threads = recipe.trainer.threads or auto_threads()
     if not recipe.trainer.threads:
         tqdm.write(f"trainer.threads=0: {threads} thread(s), the cores idle now", file=sys.stderr)
@@ -229,147 +294,154 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
     torch.manual_seed(recipe.seed)
     random.seed(recipe.seed)
 
-    # --- data and model ---------------------------------------------------------------------
-    device = resolve_device(recipe.trainer.device)
-    data = prepare_data(recipe, device)
-    method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, data.obs_keys, data.obs_dim,
-                          data.action_dim, device)
-    if recipe.trainer.compile:
-        compile_method(method)
-    terms = METHODS[recipe.method.name].terms
-    generator = torch.Generator().manual_seed(recipe.seed)
-    evaluator = None
-    if recipe.eval.env:
-        from rm_torchrl.train.evaluate import Evaluator
 
-        evaluator = Evaluator(recipe, data, method.policy, device)
-    def write_recipe() -> None:  # the experiment, not this session: resuming from it runs to the end
-        written = recipe.to_dict()
-        written["trainer"]["stop_at"] = 0
-        write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(written, sort_keys=False))
+def _make_evaluator(recipe: Recipe, data, method, device):
+    """The online evaluator, or None without ``eval.env`` (its import pulls in the environments)."""
+    if not recipe.eval.env:
+        return None
+    from rm_torchrl.train.evaluate import Evaluator
 
-    if state is None:  # a resume keeps the folder's recipe.yaml until its first update has run
-        write_recipe()
-    if data.report is not None:
-        write_atomic(run_dir / REFINE_FILE, json.dumps(data.report, indent=2) + "\n")
+    return Evaluator(recipe, data, method.policy, device)
 
-    # --- resume -----------------------------------------------------------------------------
-    start, elapsed_before = 0, 0.0
-    if state is not None:
-        method.loss.load_state_dict(state["loss"])
-        for opt, opt_state in zip(method.optimizers, state["optimizers"]):
-            opt.load_state_dict(opt_state)
-        generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        if device.type == "cuda" and state.get("cuda_rng") is not None:
-            torch.cuda.set_rng_state(state["cuda_rng"], device)
-        start = state["step"]
-        elapsed_before = float(state.get("elapsed_seconds", 0.0))
-        _trim_history(run_dir, start)
-    try:
-        logger = _make_logger(recipe, run_dir)
-    except OSError as err:  # its folders on a full disk
-        raise WriteFailed(run_dir / LOGS_DIR, err) from None
-    eval_csv = run_dir / EVAL_FILE
-    if not eval_csv.exists():
-        write_atomic(eval_csv, ",".join(EVAL_COLUMNS) + "\n")
 
-    def log_scalar(key: str, value: float, step: int) -> None:
+def _write_recipe(recipe: Recipe, run_dir: Path) -> None:
+    """The experiment, not this session: resuming from it runs to the end (``stop_at`` 0)."""
+    written = recipe.to_dict()
+    written["trainer"]["stop_at"] = 0
+    write_atomic(run_dir / RECIPE_FILE, yaml.safe_dump(written, sort_keys=False))
+
+
+def _resume(state: dict, method, generator: torch.Generator, device: torch.device, run_dir: Path
+            ) -> tuple[int, float]:
+    """Loads the checkpoint's networks, optimisers and RNGs and drops the history logged after it;
+    returns its step and the machine time the run had taken."""
+    method.loss.load_state_dict(state["loss"])
+    for opt, opt_state in zip(method.optimizers, state["optimizers"]):
+        opt.load_state_dict(opt_state)
+    generator.set_state(state["generator"])
+    torch.set_rng_state(state["torch_rng"])
+    if device.type == "cuda" and state.get("cuda_rng") is not None:
+        torch.cuda.set_rng_state(state["cuda_rng"], device)
+    _trim_history(run_dir, state["step"])
+    return state["step"], float(state.get("elapsed_seconds", 0.0))
+
+
+class _ScalarLog:
+    """The TorchRL logger under ``logs/``; a full disk is a :class:`WriteFailed` with no half-written row."""
+
+    def __init__(self, recipe: Recipe, run_dir: Path):
+        self.dir = run_dir / LOGS_DIR
         try:
-            logger.log_scalar(key, value, step=step)
-        except OSError as err:  # a full disk: close the logger's files now (no retried flush at exit), cut their last row
-            for f in list(getattr(logger.experiment, "files", {}).values()):
+            self.logger = _make_logger(recipe, run_dir)
+        except OSError as err:  # its folders on a full disk
+            raise WriteFailed(self.dir, err) from None
+
+    def __call__(self, key: str, value: float, step: int) -> None:
+        try:
+            self.logger.log_scalar(key, value, step=step)
+        except OSError as err:  # a full disk: close the logger's files now (no flush retried at exit), cut the last row
+            for f in list(getattr(self.logger.experiment, "files", {}).values()):
                 try:
                     f.close()
                 except OSError:
                     pass
-            for path in (run_dir / LOGS_DIR).rglob("*.csv"):
+            for path in self.dir.rglob("*.csv"):
                 cut_partial_line(path)
-            raise WriteFailed(run_dir / LOGS_DIR, err) from None
+            raise WriteFailed(self.dir, err) from None
 
-    def checkpoint(step: int) -> None:
-        save_checkpoint(ckpt_path, {
+
+class _Run:
+    """The loop's named steps - update, log, evaluate, checkpoint, show - and what they share.
+
+    Made after any resume has trimmed the logged history: it opens the logger and ``eval.csv``.
+    """
+
+    def __init__(self, recipe: Recipe, run_dir: Path, data, method, generator, evaluator, device: torch.device,
+                 start: int, elapsed_before: float, progress: bool):
+        self.recipe, self.run_dir, self.data, self.method = recipe, run_dir, data, method
+        self.generator, self.evaluator, self.device = generator, evaluator, device
+        self.start, self.elapsed_before = start, elapsed_before
+        self.terms = METHODS[recipe.method.name].terms
+        self.log_scalar = _ScalarLog(recipe, run_dir)
+        if not (run_dir / EVAL_FILE).exists():
+            write_atomic(run_dir / EVAL_FILE, ",".join(EVAL_COLUMNS) + "\n")
+        self.shown: dict = {}  # the bar's postfix: the last logged loss terms and evaluation
+        self.bar = progress_bar(total=recipe.trainer.steps, initial=start, desc=recipe.name, unit="step",
+                                disable=not progress, file=sys.stderr, dynamic_ncols=True)
+        self.clock = Stopwatch()  # machine time across resumes; the evaluations are left out of updates_per_second
+
+    def update(self, step: int):
+        """One gradient step on a fresh batch (the first compiles); a non-finite loss marks the run failed."""
+        if self.method.schedule is not None:
+            self.method.schedule(step)
+        batch = self.data.sample(self.recipe.trainer.batch_size, self.generator)
+        try:
+            return (_first_step if step == self.start + 1 else gradient_step)(self.method, self.terms, batch)
+        except NonFinite as err:
+            self.bar.close()
+            message = (f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; "
+                       f"{_kept(self.run_dir / CHECKPOINT, hint='')}")
+            mark_failed(self.run_dir, step, str(err), message)
+            raise RMError(message) from None
+
+    def after_first_update(self, resumed: bool) -> None:
+        if resumed:
+            _write_recipe(self.recipe, self.run_dir)
+        _restart_clock(self.bar)  # the compile is no guide to the steps after it
+
+    def log(self, step: int, losses) -> None:
+        """The loss terms and the loss's scalar diagnostics, and the update rate."""
+        for key, entry in losses.items():
+            if entry.numel() == 1:
+                value = float(entry.detach())
+                self.log_scalar(key, value, step=step)
+                if key in self.terms:
+                    self.shown[key.removeprefix("loss_")] = f"{value:.3g}"
+        self.log_scalar("updates_per_second", (step - self.start) / self.clock.counted, step=step)
+
+    def evaluate(self, step: int) -> None:
+        """Online episodes: a row of ``eval.csv`` and the logger's ``eval_*`` scalars."""
+        with self.clock.excluding():
+            result = self.evaluator.run()
+            with appending(self.run_dir / EVAL_FILE) as f:  # "\n" rows, as _trim_history rewrites them
+                csv.writer(f, lineterminator="\n").writerow(
+                    [step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:-1]), result["reward"]])
+            for key in EVAL_COLUMNS[1:-1]:
+                self.log_scalar(f"eval_{key}", result[key], step=step)
+        self.shown["score"] = f"{result['score']:.1f}"
+        self.shown["events"] = f"{result['events_mean']:.2f}"
+
+    def checkpoint(self, step: int) -> None:
+        method, device = self.method, self.device
+        save_checkpoint(self.run_dir / CHECKPOINT, {
             "step": step,
             "loss": method.loss.state_dict(),
             "optimizers": [opt.state_dict() for opt in method.optimizers],
-            "generator": generator.get_state(),
+            "generator": self.generator.get_state(),
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None,  # dropout on the GPU
-            "obs_loc": data.loc,
-            "obs_scale": data.scale,
-            "recipe": recipe.to_dict(),
-            "elapsed_seconds": elapsed_before + time.perf_counter() - started,  # machine time, across resumes
+            "obs_loc": self.data.loc,
+            "obs_scale": self.data.scale,
+            "recipe": self.recipe.to_dict(),
+            "elapsed_seconds": self.elapsed_before + self.clock.seconds,  # machine time, across resumes
         })
 
-    def evaluate(step: int) -> dict:
-        result = evaluator.run()
-        with appending(eval_csv) as f:  # "\n" rows, as _trim_history rewrites them
-            csv.writer(f, lineterminator="\n").writerow(
-                [step, *(round(result[c], 6) for c in EVAL_COLUMNS[1:-1]), result["reward"]])
-        for key in EVAL_COLUMNS[1:-1]:
-            log_scalar(f"eval_{key}", result[key], step=step)
-        return result
+    def show(self, step: int) -> None:
+        self.bar.update()
+        if self.shown and step % 50 == 0:
+            self.bar.set_postfix(self.shown, refresh=False)
 
-    # --- the loop ---------------------------------------------------------------------------
-    bar = progress_bar(total=recipe.trainer.steps, initial=start, desc=recipe.name, unit="step",
-               disable=not progress, file=sys.stderr, dynamic_ncols=True)
-    shown: dict = {}
-    completed = start
-    started = time.perf_counter()
-    eval_seconds = 0.0  # updates_per_second counts gradient steps only
-    last = recipe.trainer.stop_at or recipe.trainer.steps
-    with _StopOnSignal() as stop:
-        for step in range(start + 1, last + 1):
-            if stop.signum is not None:
-                break
-            first = step == start + 1
-            if method.schedule is not None:
-                method.schedule(step)
-            try:
-                losses = (_first_step if first else gradient_step)(method, terms,
-                                                                    data.sample(recipe.trainer.batch_size, generator))
-            except NonFinite as err:
-                bar.close()
-                message = (f"step {step}: {err} is NaN or inf; training stopped and the run is marked failed; "
-                           f"{_kept(ckpt_path, hint='')}")
-                mark_failed(run_dir, step, str(err), message)
-                raise RMError(message) from None
-            if first:
-                if state is not None:
-                    write_recipe()
-                _restart_clock(bar)  # the compile is no guide to the steps after it
-            if step % recipe.trainer.log_every == 0 or step == recipe.trainer.steps:
-                for key, entry in losses.items():
-                    if entry.numel() == 1:  # the loss terms and the loss's scalar diagnostics
-                        value = float(entry.detach())
-                        log_scalar(key, value, step=step)
-                        if key in terms:
-                            shown[key.removeprefix("loss_")] = f"{value:.3g}"
-                train_seconds = time.perf_counter() - started - eval_seconds
-                log_scalar("updates_per_second", (step - start) / train_seconds, step=step)
-            if evaluator is not None and (step % recipe.eval.every == 0 or step == recipe.trainer.steps):
-                eval_started = time.perf_counter()
-                result = evaluate(step)
-                eval_seconds += time.perf_counter() - eval_started
-                shown["score"] = f"{result['score']:.1f}"
-                shown["events"] = f"{result['events_mean']:.2f}"
-            if step % recipe.trainer.checkpoint_every == 0:
-                checkpoint(step)
-            completed = step
-            bar.update()
-            if shown and step % 50 == 0:
-                bar.set_postfix(shown, refresh=False)
-        checkpoint(completed)  # before the bar's last line: a parent that died leaves a broken pipe to write to
-        bar.close()
-    if stop.signum is not None and completed < recipe.trainer.steps:  # after the last step the run is finished
-        message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {recipe.trainer.steps}; "
+
+def _say_where_it_stopped(stop: _StopOnSignal, completed: int, steps: int) -> None:
+    """A signal before the last step raises :class:`RunInterrupted`; ``trainer.stop_at`` says where to resume."""
+    if stop.signum is not None and completed < steps:  # after the last step the run is finished
+        message = (f"{signal.Signals(stop.signum).name}: stopped after step {completed} of {steps}; "
                    "checkpoint written, continue with resume=true")
         stop.forward(message)
         raise RunInterrupted(stop.signum, message)
-    if completed < recipe.trainer.steps:
-        print(f"trainer.stop_at: stopped after step {completed} of {recipe.trainer.steps}; checkpoint written, "
+    if completed < steps:
+        print(f"trainer.stop_at: stopped after step {completed} of {steps}; checkpoint written, "
               "continue with resume=true", file=sys.stderr)
-    return run_dir
 
 
 def _restart_clock(bar) -> None:
