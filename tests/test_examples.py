@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import reference as ref
+from rm_torchrl import reference as ref
 from rm_torchrl.refine import (
     CounterfactualRelabel,
     EventOrder,

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-import reference as ref
+from rm_torchrl import reference as ref
 from rm_torchrl.errors import RMError
 from rm_torchrl.rm import EventOrderedRM
 

@@ -8,7 +8,7 @@ Data: a door-cloned-sized dataset (1M transitions, 39-dim observation, 28-dim ac
   a stored dataset pays before computing anything);
 - ``pipeline``: the six refinement transforms (alpha 0.5);
 - ``reference``: the per-transition Python implementation of Algorithms 1 and 2 from
-  ``tests/reference.py``, with Phi evaluated state by state.
+  ``rm_torchrl.reference``, with Phi evaluated state by state.
 
 Prints JSON with times, transitions/s and the ratios the targets are stated in: pipeline cost
 over a bare read (target <= 3) and reference time over pipeline time (target >= 100).
@@ -19,21 +19,16 @@ import argparse
 import json
 import math
 import os
-import sys
 import tempfile
 import time
-from pathlib import Path
 
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")  # as the rmrl command does; recorded in the JSON
 
 import torch  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
-
-from reference import reference_refine  # noqa: E402
-
 from rm_torchrl.data.synthetic import make_door_like  # noqa: E402
+from rm_torchrl.reference import reference_refine  # noqa: E402
 from rm_torchrl.refine import refine  # noqa: E402
 
 
