@@ -2,10 +2,12 @@
 processes and signals): a module of its own, so that test files never import each other."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -19,7 +21,25 @@ from rm_torchrl.data.synthetic import write_door_like_hdf5
 ROOT = Path(__file__).resolve().parents[1]
 
 
-# --- rmrl generate, Minari caches ----------------------------------------------------------------
+# --- benchmark scripts, rmrl generate, Minari caches ----------------------------------------------
+
+def load_benchmark(name: str):
+    """The module of the script ``benchmarks/NAME.py`` (``NAME`` may name a subfolder: ``diagnostics/iql_diagnostics``).
+
+    The scripts are not a package: as ``python benchmarks/NAME.py`` does, the script's own folder comes first on
+    ``sys.path`` while it loads, so its sibling imports resolve; the path is restored afterwards.
+    """
+    script = ROOT / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(script.stem, script)
+    module = importlib.util.module_from_spec(spec)
+    saved = list(sys.path)
+    sys.path.insert(0, str(script.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path[:] = saved
+    return module
+
 
 def generate_cli(*argv: str) -> int:
     """``rmrl generate ARGV`` through the subcommand's own parser and ``run``."""
@@ -39,7 +59,7 @@ def leftovers(cache: Path) -> list[str]:
     return sorted(p.relative_to(cache).as_posix() for p in cache.rglob("*")) if cache.exists() else []
 
 
-# --- training on tiny door-like data -------------------------------------------------------------
+# --- training on tiny door-like data --------------------------------------------------------------
 
 def write_d4rl(path: Path, transitions: int = 4000, episode_length: int = 100, seed: int = 0) -> Path:
     """A D4RL-format file of door-like episodes (one step more per episode than transitions)."""
@@ -67,7 +87,7 @@ def policy_inputs(run_dir: Path) -> list[str]:
     return list(load_policy(run_dir, env="AdroitHandDoor-v1").policy.in_keys)
 
 
-# --- D4RL-format files whose rows encode (episode, step) -----------------------------------------
+# --- D4RL-format files whose rows encode (episode, step) ------------------------------------------
 
 def steps_of(lengths):
     """Observations (N, 3), actions (N, 2), rewards (N,) and the row index of each episode's last step."""
@@ -119,7 +139,7 @@ def make_file(tmp_path, lengths, ends="terminals", name="d.hdf5", **kw):
     return write_h5(tmp_path / name, obs, actions, rewards, **kw), (obs, actions, rewards, last)
 
 
-# --- the rmrl command in-process -----------------------------------------------------------------
+# --- the rmrl command in-process ------------------------------------------------------------------
 
 def write_door_h5(path: Path, n_eps: int = 6, T: int = 40, events: bool = True) -> Path:
     """D4RL door layout (39-dim obs, 28-dim action); obs[0] jumps by 100 between episodes."""
@@ -173,7 +193,7 @@ def assert_error(capsys, command, argv, match):
     return message
 
 
-# --- bad data refused everywhere -----------------------------------------------------------------
+# --- bad data refused everywhere ------------------------------------------------------------------
 
 def refused_by_train_refine_and_import(tmp_path: Path, bad: Path, message: str, capsys, cache) -> None:
     """``rmrl train``, ``refine`` and ``import-d4rl`` on the file ``bad`` all exit 2 with ``message``
@@ -188,7 +208,7 @@ def refused_by_train_refine_and_import(tmp_path: Path, bad: Path, message: str, 
     assert not any(cache.rglob("bad-v0*"))
 
 
-# --- processes and signals -----------------------------------------------------------------------
+# --- processes and signals ------------------------------------------------------------------------
 
 def _children(pid: int) -> list[int]:
     """The live processes whose parent is ``pid`` (from /proc)."""
@@ -232,7 +252,7 @@ def signal_while_training(cmd: list[str], runs: list[Path], signum: int) -> tupl
     return proc, err, children
 
 
-# --- run directories as the trainer writes them --------------------------------------------------
+# --- run directories as the trainer writes them ---------------------------------------------------
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 EVAL_HEADER = "step,return_mean,return_std,score,success_rate,events_mean,episodes"

@@ -5,7 +5,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from conftest import load_benchmark
+from helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
