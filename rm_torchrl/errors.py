@@ -4,6 +4,9 @@
 class RMError(ValueError):
     """Bad input to rm_torchrl: a malformed spec, wrong shapes, NaNs, empty data, bad options."""
 
+    #: what ``rmrl`` exits with on it
+    exit_status = 2
+
 
 def read_yaml(path, what: str):
     """The parsed YAML file at ``path``; ``what`` names it in the error ("recipe", "event spec")."""

@@ -374,6 +374,25 @@ def test_demo_keeps_the_users_runs(tmp_path):
     assert _files(runs) == written
 
 
+@pytest.mark.slow
+def test_two_demos_into_one_folder_at_once_both_report_the_same_runs(tmp_path):
+    """Started at the same instant, each demo waits for the runs the other trains: every run is trained once, both
+    exit 0 and write the same demo.md."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "rm_torchrl.cli.main", "demo", *DEMO]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for proc, (out, err) in zip(procs, outs):
+        assert proc.returncode == 0, err[-3000:]
+        assert "failed" not in err and "Traceback" not in err, err[-3000:]
+    assert outs[0][0] == outs[1][0]  # the same summary
+    for run in ("demo-ours-seed0", "demo-iql-seed0"):
+        evals = (tmp_path / "runs" / run / "eval.csv").read_text().splitlines()
+        assert len(evals) == 3, evals  # the header and 2 evaluations: trained once
+
+
 def test_demo_on_another_file_names_it(tmp_path):
     """``--dataset FILE``: the runs train on FILE, and the tables name the dataset after it, not door-human-v0."""
     data = tmp_path / "my-door.hdf5"

@@ -205,11 +205,11 @@ def test_nonfinite_runs_stay_out_of_the_json(tmp_path):
 
 
 def test_demo_accepts_the_files_its_report_writes(tmp_path):
-    from rm_torchrl.cli.demo import _check_report_dir
+    from rm_torchrl.launch.demo import check_report_dir
 
     for name in ("results.md", "demo.md", "learning_curves.png", "aggregates.json", "performance_profile.png"):
         (tmp_path / name).write_text("")
-    _check_report_dir(tmp_path)
+    check_report_dir(tmp_path)
 
 
 def test_table1_benchmark_report(tmp_path):
@@ -251,6 +251,13 @@ def test_table1_benchmark_report(tmp_path):
     assert (results / "performance_profile_d4rl.png").read_bytes()[:8] == PNG_MAGIC
 
 
+def ours_500k():
+    """ours' optimiser settings at the door study's 500k budget, as the recipes give them today (read, not pinned)."""
+    from rm_torchrl.train.recipe import load_recipe
+
+    return load_recipe(None, ["dataset=door-human-v0", "method=ours", "trainer.steps=500000"]).optim
+
+
 def door_500k_report(out: Path, results: Path) -> None:
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "studies" / "door_500k.py"), "report",
                            "--out", str(out), "--results", str(results), "--reps", "200"],
@@ -289,6 +296,7 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     stay out of the main table."""
     results = tmp_path / "results"
     seed, other = free_seeds("door-human-v0", 2)  # the seeds the report takes ours' default runs from
+    stale = f"optim.lr_actor: 0.0003 -> {ours_500k().lr_actor!r}"
     write_run(results / "runs", "door-human-v0-ours", seed, "ours", True, "door",
               {**{s: 20.0 for s in range(10_000, 100_001, 10_000)}, **{s: 5.0 for s in range(110_000, 500_001, 10_000)}})
     write_run(tmp_path / "out", "door-human-v0-lra3e-5", seed, "ours", True, "door",
@@ -305,11 +313,11 @@ def test_door_500k_report_of_fix_candidates(tmp_path):
     assert (results / "arms" / "curves.png").read_bytes()[:8] == PNG_MAGIC
     text = (results / "results.md").read_text()
     assert "| Ours | 1 |" in text  # neither the arm nor the run of an earlier default is one of ours' default runs
-    assert f"door-human-v0-ours-seed{other}: trained with an earlier default (optim.lr_actor: 0.0003 -> 3e-05)" in text
+    assert f"door-human-v0-ours-seed{other}: trained with an earlier default ({stale})" in text
     (results / "before-fix").mkdir()
     old.rename(results / "before-fix" / old.name)
     door_500k_report(tmp_path / "out", results)
-    assert f"| ours before the fix (optim.lr_actor: 0.0003 -> 3e-05) | {other} | 500,000 | 3.0 | 3.0 |" in (
+    assert f"| ours before the fix ({stale}) | {other} | 500,000 | 3.0 | 3.0 |" in (
         results / "arms.md").read_text()
 
 
@@ -340,7 +348,8 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     is left alone. The arm runs on a seed the report takes ours' default runs from (no choice used it)."""
     results = tmp_path / "results"
     seed = free_seeds("door-human-v0", 1)[0]
-    arm_run(results, "lra3e-5", ["optim.lr_actor=3.0e-5"], seed=seed)
+    optim = ours_500k()
+    arm_run(results, "lra3e-5", [f"optim.lr_actor={optim.lr_actor!r}"], seed=seed)
     done = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(results))
     assert done.returncode == 0, done.stderr
     assert "100 evaluations" in done.stderr and "50 of 100" in done.stderr
@@ -349,7 +358,7 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     assert len(rows) == 51 and rows[1].startswith("10000,") and rows[-1].startswith("500000,500.0,1.0,50.0,")
     recipe = yaml.safe_load((dest / "recipe.yaml").read_text())
     assert recipe["name"] == "door-human-v0-ours" and recipe["eval"]["every"] == 10_000
-    assert recipe["optim"]["lr_actor"] == 3.0e-5
+    assert recipe["optim"]["lr_actor"] == optim.lr_actor
     assert (recipe["method"]["name"], recipe["method"]["hparams"], recipe["data"]["refine"]) == ("iql", "ours", "paper")
     adopted = json.loads((dest / "adopted.json").read_text())
     assert adopted["from"] == f"arms/runs/door-human-v0-lra3e-5-seed{seed}" and adopted["evaluated_every"] == 5_000
@@ -360,8 +369,9 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     assert "| Ours | 1 | 50.0 | 50.0 [50.0, 50.0] | 50.0 | 48.0 |" in (results / "results.md").read_text()
 
     for arm, overrides, stop, why in [
-            ("wdpi1e-2", ["optim.weight_decay_pi=1.0e-2"], 500_000, "optim.weight_decay_pi: 0.01 -> 0.001"),
-            ("lra3e-5", ["optim.lr_actor=3.0e-5"], 100_000, "it stops at 100,000 of 500,000 steps")]:
+            ("wdpi1e-2", ["optim.weight_decay_pi=1.0e-2"], 500_000,
+             f"optim.weight_decay_pi: 0.01 -> {optim.weight_decay_pi!r}"),
+            ("lra3e-5", [f"optim.lr_actor={optim.lr_actor!r}"], 100_000, "it stops at 100,000 of 500,000 steps")]:
         other = tmp_path / f"other-{arm}-{stop}"
         arm_run(other, arm, overrides, stop=stop, seed=seed)
         refused = door_500k("adopt", "--arms", arm, "--seeds", str(seed), "--results", str(other))
@@ -371,7 +381,7 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     write_run(legacy / "arms" / "runs", "door-human-v0-lra3e-5", seed, "ours", True, "door",
               {s: 1.0 for s in range(10_000, 500_001, 10_000)})
     refused = door_500k("adopt", "--arms", "lra3e-5", "--seeds", str(seed), "--results", str(legacy))
-    assert refused.returncode != 0 and "optim.lr_actor: (absent) -> 3e-05" in refused.stderr
+    assert refused.returncode != 0 and f"optim.lr_actor: (absent) -> {optim.lr_actor!r}" in refused.stderr
 
 
 def test_linked_and_unreadable_run_folders_are_counted_or_named(tmp_path):

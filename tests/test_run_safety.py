@@ -123,7 +123,7 @@ def test_a_resume_with_another_budget_or_evaluation_is_refused_and_writes_nothin
 def test_a_run_holding_evaluations_without_its_checkpoint_is_never_retrained(tmp_path, dataset, again, capsys):
     """A finished run whose checkpoint was deleted (to save disk): a rerun, with or without another setting, and
     a grid rerun leave every file as it was, each saying so in one line."""
-    from rm_torchrl.cli.train import run_grid
+    from rm_torchrl.launch import run_grid
 
     recipe = make_recipe(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 3, every: 10, episodes: 1}\n")
     run_dir = train(load_recipe(recipe, ["trainer.steps=10"]), progress=False)
@@ -177,6 +177,30 @@ def test_a_run_without_checkpoint_restarts_without_resume(tmp_path, dataset):
 
 # --- one process per run -------------------------------------------------------------------------
 
+def test_a_grid_waits_for_a_run_another_process_trains_and_then_skips_it(tmp_path, dataset, capfd):
+    """Two launches of the same runs at once (two demos into one folder): the grid waits for the run the other
+    process trains and counts it as done once finished there; nothing is trained twice, no failure is reported."""
+    from rm_torchrl.launch import run_grid
+
+    recipe = make_recipe(tmp_path, dataset)
+    run_dir = tmp_path / "runs" / "tiny-seed0"
+    first = spawn("train", str(recipe), "trainer.steps=3000", "trainer.log_every=10", "--no-progress")
+    try:
+        wait_for(run_dir / "logs" / "scalars" / "loss_actor.csv", first)
+        run_grid([(str(recipe), ["trainer.steps=3000", "trainer.log_every=10"]),
+                  (str(recipe), ["trainer.steps=20", "seed=1"])], jobs=2)
+        assert first.wait(timeout=300) == 0, first.communicate()
+    finally:
+        first.kill()
+    err = capfd.readouterr().err
+    assert f"waiting for {run_dir}: process {first.pid} trains it" in err, err
+    assert "1 of 1 runs already finished: skipped" in err and "failed" not in err, err
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 3000
+    assert torch.load(tmp_path / "runs" / "tiny-seed1" / "checkpoint.pt", weights_only=True)["step"] == 20
+    rows = (run_dir / "logs" / "scalars" / "loss_actor.csv").read_text().splitlines()  # step,value; no header
+    assert len(rows) == len({row.split(",")[0] for row in rows}) == 300  # one training, no step logged twice
+
+
 def test_a_second_process_on_the_same_run_is_refused(tmp_path, dataset):
     recipe = make_recipe(tmp_path, dataset)
     first = spawn("train", str(recipe), "trainer.steps=100000", "trainer.log_every=10", "--no-progress")
@@ -184,7 +208,7 @@ def test_a_second_process_on_the_same_run_is_refused(tmp_path, dataset):
         wait_for(tmp_path / "runs" / "tiny-seed0" / "logs" / "scalars" / "loss_actor.csv", first)
         second = spawn("train", str(recipe), "trainer.steps=100000", "resume=true", "--no-progress")
         _, err = second.communicate(timeout=120)
-        assert second.returncode == 2, err
+        assert second.returncode == 75, err  # EX_TEMPFAIL: a launcher waits for the run instead
         assert f"is in use by process {first.pid}" in err and "Traceback" not in err, err
     finally:
         first.kill()
@@ -221,7 +245,7 @@ def test_a_signal_checkpoints_and_the_resumed_run_is_bit_identical(tmp_path, dat
 
 #: A parent built on run_grid (as the benchmarks and the demo are), exiting as ``rmrl`` does on an interruption.
 GRID = """import sys
-from rm_torchrl.cli.train import run_grid
+from rm_torchrl.launch import run_grid
 from rm_torchrl.train.trainer import RunInterrupted
 
 recipe, *overrides = sys.argv[1:]
@@ -436,7 +460,7 @@ def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path, dataset, cap
 
 def test_one_unreadable_checkpoint_does_not_stop_a_grid(tmp_path, dataset, capsys):
     """The grid trains the others and names the run whose checkpoint cannot be read, leaving it as it is."""
-    from rm_torchrl.cli.train import run_grid
+    from rm_torchrl.launch import run_grid
 
     recipe = make_recipe(tmp_path, dataset)
     broken = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10", "seed=1"]), progress=False)

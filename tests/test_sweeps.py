@@ -271,6 +271,37 @@ def test_cli_reads_exponent_floats_and_names_unknown_keys(tmp_path, dataset, cap
 
 # --- launchers -----------------------------------------------------------------------------------
 
+def _read_only_folder(tmp_path: Path) -> Path | None:
+    """A folder nobody may write: a read-only tmpfs where this process may mount one (root writes anywhere else),
+    else a chmod-0500 folder for other users; None where neither holds."""
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o500)
+        return folder
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)], capture_output=True)
+    return folder if mounted.returncode == 0 else None
+
+
+@pytest.mark.parametrize("where", ["a file in the way", "read-only"])
+def test_a_sweep_into_a_folder_it_cannot_write_is_one_line(tmp_path, dataset, capfd, where):
+    path = tiny(tmp_path, dataset)
+    if where == "read-only":
+        out = _read_only_folder(tmp_path)
+        if out is None:
+            pytest.skip("this machine can neither mount a read-only folder nor deny root a write")
+    else:
+        (tmp_path / "afile").write_text("")
+        out = tmp_path / "afile" / "runs"
+    try:
+        assert main(["train", "-m", str(path), "seed=0,1", "trainer.steps=2", f"out={out}"]) == 2
+    finally:
+        if where == "read-only" and os.geteuid() == 0:
+            subprocess.run(["umount", str(out)], capture_output=True)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err
+    assert f"cannot write the runs' folder {out}" in err and err.count("\n") == 1
+
 def test_submitit_local_launcher_runs_each_job_in_its_process_and_skips_them_next_time(tmp_path, dataset, capfd):
     path = tiny(tmp_path, dataset)
     out = tmp_path / "sweep"

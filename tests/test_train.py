@@ -577,15 +577,15 @@ def test_compilation_says_when_it_starts_and_how_long_it_took(tmp_path, dataset,
 
 
 def test_run_many_threads_share_the_cores_unless_set(tmp_path, dataset, monkeypatch):
-    from rm_torchrl.cli import train as train_cli
+    from rm_torchrl.launch import processes as launch
 
-    monkeypatch.setattr(train_cli.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(launch.os, "cpu_count", lambda: 4)
     recipe = str(make_recipe(tmp_path, dataset))
-    train_cli.run_many([[recipe, "seed=0", "trainer.steps=2", "trainer.threads=0"],
+    launch.run_many([[recipe, "seed=0", "trainer.steps=2", "trainer.threads=0"],
                         [recipe, "seed=1", "trainer.steps=2", "trainer.threads=1"]], jobs=2)
     threads = [load_recipe(tmp_path / "runs" / f"tiny-seed{k}" / "recipe.yaml").trainer.threads for k in (0, 1)]
     assert threads == [0, 1]  # the runs' own values win
-    train_cli.run_many([[recipe, "seed=2", "trainer.steps=2"]], jobs=2)
+    launch.run_many([[recipe, "seed=2", "trainer.steps=2"]], jobs=2)
     assert load_recipe(tmp_path / "runs" / "tiny-seed2" / "recipe.yaml").trainer.threads == 2  # 4 cores, 2 jobs
 
 
@@ -597,7 +597,7 @@ def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_r
     import threading
     import time
 
-    from rm_torchrl.cli import train as train_cli
+    from rm_torchrl.launch import processes as launch
     from rm_torchrl.train.trainer import RunInterrupted
 
     recipe = str(make_recipe(tmp_path, dataset))
@@ -612,7 +612,7 @@ def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_r
     killer = threading.Thread(target=signal_when_the_third_is_done, daemon=True)
     killer.start()
     with pytest.raises(RunInterrupted) as stopped:
-        train_cli.run_many([[recipe, "seed=0", "trainer.steps=1000000", "trainer.log_every=10"],
+        launch.run_many([[recipe, "seed=0", "trainer.steps=1000000", "trainer.log_every=10"],
                             [recipe, "seed=1", "trainer.steps=5"], [recipe, "seed=2", "trainer.steps=5"]], jobs=2)
     killer.join()
     step = torch.load(runs / "tiny-seed0" / "checkpoint.pt", weights_only=True)["step"]

@@ -1,185 +1,33 @@
-"""``rmrl demo``: the main job as documented, on the real door-human-v0 shipped in the package.
-
-It composes ``dataset=door-human-v0`` with ``method=ours`` and with ``method=iql`` through the
-recipe groups, exactly as ``rmrl train dataset=door-human-v0 method=...`` does, and overrides only the budget, the evaluation, the names and the threads:
-``SEEDS`` seeds of each, two runs at a time on one thread each. Then ``rmrl report`` writes
-``OUT/report`` and the demo adds ``OUT/report/demo.md``: score, success rate and events reached
-per method, each beside its budget.
-
-It never deletes anything. Its runs are ``OUT/runs/demo-<method>-seed<k>`` and follow a sweep's
-policy: run again, finished runs are skipped and killed ones resumed; an earlier demo run that
-differs from this one (other data, a longer budget) is refused, not replaced.
-"""
+"""``rmrl demo``: the main job on the real door-human-v0 shipped in the package (:mod:`rm_torchrl.launch.demo`)."""
 from __future__ import annotations
 
-import sys
-from argparse import Namespace
-from pathlib import Path
+import argparse
 
-import numpy as np
+from rm_torchrl.launch.demo import EPISODES, EVALUATIONS, SEEDS, STEPS
 
-from rm_torchrl.data.embedded import DOOR_HUMAN_V0
-from rm_torchrl.errors import RMError
-from rm_torchrl.files import write_atomic
-
-METHODS = ("ours", "iql")
-#: The default budget, measured (README, Quick start): at 2,000 steps every seed of ours scored above
-#: the same seed of IQL (20 episodes per evaluation); at 3,000 and 4,000 steps IQL's seed 0 overtook
-#: ours. 20 episodes keep the final numbers from being a coin toss; an episode costs 0.3-0.8 s, so a
-#: run evaluates twice (halfway and at the end) to stay within 5 minutes on 2 cores.
-STEPS = 2000
-SEEDS = 3
-EPISODES = 20
-EVALUATIONS = 2  # per run: every steps // 2
-PREFIX = "demo"
-RESULTS = "demo.md"
+HELP = ("the main job on the real door-human-v0 shipped in the package: ours and IQL from the recipes, a few seeds, "
+        "MuJoCo evaluation, the report (no download)")
+DESCRIPTION = ("rmrl demo [--out DIR] [--steps N] [key=value ...]: dataset=door-human-v0 with method=ours and "
+               "method=iql, as rmrl train composes them, at a short budget; runs go to DIR/runs/demo-<method>-seed<k> "
+               "(never deleted: run again, finished runs are skipped), the report to DIR/report (results.md, demo.md).")
 
 
-def _quoted(value: str) -> str:
-    """A Hydra override value that keeps commas, spaces and ``=`` of a path as they are."""
-    return "'" + value.replace("'", "\\'") + "'"
-
-
-def demo_overrides(method: str, seed: int, args) -> list[str]:
-    """The overrides of one demo run: budget, evaluation, names and threads; the recipe groups do the rest."""
-    overrides = ["dataset=door-human-v0", f"method={method}", f"seed={seed}", f"name={PREFIX}-{method}",
-                 f"out={_quoted(str(Path(args.out).resolve() / 'runs'))}", f"trainer.steps={args.steps}",
-                 f"eval.every={max(1, args.steps // EVALUATIONS)}", f"eval.episodes={args.episodes}",
-                 "trainer.threads=1"]
-    if args.dataset:
-        overrides.append(f"data.source={_quoted(str(Path(args.dataset).resolve()))}")
-    return overrides + list(args.overrides)
-
-
-def _check_earlier(recipes) -> None:
-    """Refuses to mix this demo with an earlier one in the same ``--out`` that trained otherwise."""
-    from rm_torchrl.report.runs import read_recipe
-    from rm_torchrl.run_format import RECIPE_FILE
-    from rm_torchrl.train.rundir import recipe_changes
-
-    for recipe in recipes:
-        path = recipe.run_dir / RECIPE_FILE
-        if not path.is_file():
-            continue
-        old = read_recipe(recipe.run_dir)
-        changes = recipe_changes(old, recipe.to_dict())  # the budget and the evaluation included
-        if changes:
-            raise RMError(f"{recipe.run_dir} holds an earlier run that differs from this demo ({'; '.join(changes)}); "
-                          "give another --out, or move that run away")
-
-
-def _check_report_dir(report: Path) -> None:
-    """``OUT/report`` is the demo's to write only when empty or an earlier demo's report (it has ``demo.md``
-    and nothing but what the report writes): a user's own ``report/`` is refused before any training."""
-    from rm_torchrl.cli.report import AGGREGATES, CURVES, PROFILE, RESULTS as TABLES, SIZES
-
-    if not report.exists():
-        return
-    if not report.is_dir():
-        raise RMError(f"{report} exists and is not a directory; give another --out")
-    entries = sorted(p.name for p in report.iterdir())
-    foreign = [e for e in entries if e not in (TABLES, CURVES, SIZES, AGGREGATES, PROFILE, RESULTS)]
-    if foreign or (entries and RESULTS not in entries):
-        raise RMError(f"{report} holds files an earlier demo did not write ({', '.join(foreign or entries)}); "
-                      "give another --out, or move them away")
-
-
-def _mean_std(values: np.ndarray, decimals: int) -> str:
-    """``mean ± std`` over seeds (sample std); one seed has no spread, so just its value."""
-    if len(values) == 1:
-        return f"{values[0]:.{decimals}f}"
-    return f"{values.mean():.{decimals}f} ± {values.std(ddof=1):.{decimals}f}"
-
-
-def summary(run_dirs: list[Path], label: str) -> str:
-    """Markdown: per method, the final score, success rate and events reached, with the budget beside them."""
-    from rm_torchrl.events.spec import load_event_spec
-    from rm_torchrl.report.runs import load_runs
-
-    runs = load_runs(run_dirs, dataset_from="source")
-    if not runs:
-        raise RMError("no demo run has an evaluation to report")
-    first = runs[0].recipe
-    events = next(r.recipe["data"]["events"] for r in runs if r.recipe["data"].get("events"))
-    n_events = len(load_event_spec(events).names)
-    lines = [f"# rmrl demo: ours vs IQL on {label}", "",
-             f"Each number: mean ± std over seeds of the final evaluation in {first['eval']['env']}, "
-             f"beside its budget (gradient steps per run, seeds, evaluation episodes). Ours = IQL with weight "
-             f"decay on the RM-refined data (recipes/method/ours.yaml); IQL = plain IQL on the raw data "
-             f"(recipes/method/iql.yaml).", "",
-             f"| method | D4RL score | success rate | events reached (of {n_events}) | budget |", "|---|---:|---:|---:|---|"]
-    finals, left_out = {}, []
-    for method in ("Ours", "IQL"):
-        members = [r for r in runs if r.method == method]
-        left_out += [f"{r.path.name} (final score {r.final_value})" for r in members if not r.finite]
-        members = [r for r in members if r.finite]  # a policy gone NaN has no score to average
-        if not members:
-            continue
-        final = {key: np.array([r.evals[key][-1] for r in members]) for key in ("score", "success_rate", "events_mean")}
-        steps = sorted({r.final_step for r in members})
-        seeds = ", ".join(str(r.seed) for r in sorted(members, key=lambda r: r.seed))
-        episodes = sorted({r.episodes for r in members})
-        budget = (f"{'/'.join(f'{s:,}' for s in steps)} steps, seed{'s' * (len(members) > 1)} {seeds}, "
-                  f"{'/'.join(map(str, episodes))} episode{'s' * (episodes != [1])}")
-        finals[method] = final["score"]
-        lines.append(f"| {method} | {_mean_std(final['score'], 1)} | {_mean_std(final['success_rate'], 2)} | "
-                     f"{_mean_std(final['events_mean'], 2)} | {budget} |")
-    if left_out:
-        lines += ["", f"Left out (non-finite final evaluation): {', '.join(left_out)}."]
-    if len(finals) == 2:
-        lines += ["", verdict(finals["Ours"], finals["IQL"])]
-    return "\n".join(lines) + "\n"
-
-
-def verdict(ours: np.ndarray, iql: np.ndarray) -> str:
-    """What the seeds show, from P(ours > IQL) and its bootstrap 95% CI: above or below only when the CI says so."""
-    from rm_torchrl.report.stats import probability_of_improvement
-
-    p = probability_of_improvement(ours, iql)
-    if p.lo > 0.5:
-        said = "Ours is above IQL at this budget"
-    elif p.hi < 0.5:
-        said = "Ours is below IQL at this budget"
-    else:
-        said = "These seeds do not separate ours from IQL at this budget"
-    return (f"{said}: P(ours > IQL) = {p.value:.2f} [95% CI {p.lo:.2f}, {p.hi:.2f}] over {len(ours)} and {len(iql)} "
-            f"seeds ({ours.mean():.1f} vs {iql.mean():.1f} mean score).")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("overrides", nargs="*", metavar="key=value",
+                   help="overrides for every run's recipe after the demo's own, e.g. trainer.compile=false")
+    p.add_argument("--dataset", metavar="FILE.hdf5",
+                   help="another door D4RL .hdf5 file (default: the packaged door-human-v0, D4RL, CC BY 4.0)")
+    p.add_argument("--steps", type=int, default=STEPS, help=f"gradient steps per run (default {STEPS})")
+    p.add_argument("--seeds", type=int, default=SEEDS, help=f"seeds per method (default {SEEDS}: the report shows a spread)")
+    p.add_argument("--seed", type=int, default=0, help="the first seed (default 0)")
+    p.add_argument("--episodes", type=int, default=EPISODES,
+                   help=f"episodes per evaluation (default {EPISODES}; {EVALUATIONS} evaluations a run)")
+    p.add_argument("--out", default="runs/demo", metavar="DIR", help="output folder (default runs/demo)")
 
 
 def run(args) -> int:
-    from rm_torchrl.cli.report import run as report
-    from rm_torchrl.cli.train import run_grid
-    from rm_torchrl.train.recipe import load_recipe
+    from rm_torchrl.launch.demo import run_demo
 
-    if args.steps < 1 or args.seeds < 1 or args.episodes < 1:
-        raise RMError(f"--steps, --seeds and --episodes must be positive, got {args.steps}, {args.seeds} "
-                      f"and {args.episodes}")
-    from rm_torchrl.train.config import check_seed
-
-    check_seed(args.seed, "--seed")
-    check_seed(args.seed + args.seeds - 1, f"--seed + --seeds - 1 (the last seed, with --seeds {args.seeds})")
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise RMError(f"--out {args.out} is a file: give a folder")
-    if args.dataset and not Path(args.dataset).is_file():
-        raise RMError(f"dataset file {args.dataset} does not exist")
-    stray = [o for o in args.overrides if "=" not in o]
-    if stray:
-        raise RMError(f"after the options, only key=value overrides of the runs' recipes, got {stray}")
-    runs = [(None, demo_overrides(m, seed, args)) for seed in range(args.seed, args.seed + args.seeds)
-            for m in METHODS]
-    recipes = [load_recipe(path, overrides) for path, overrides in runs]  # every one checked before any starts
-    _check_earlier(recipes)
-    _check_report_dir(Path(args.out) / "report")
-    source = recipes[0].data.source
-    label = "door-human-v0 (D4RL's file shipped in the package)" if Path(source) == DOOR_HUMAN_V0 else source
-    print(f"data: {source}\n{len(runs)} runs ({', '.join(METHODS)} x {args.seeds} seeds), {args.steps:,} steps "
-          f"each, 2 at a time on 1 thread each, into {Path(args.out) / 'runs'}", file=sys.stderr, flush=True)
-    run_grid(runs, jobs=2)
-    run_dirs = [r.run_dir for r in recipes]
-    out = Path(args.out) / "report"
-    code = report(Namespace(paths=[str(d) for d in run_dirs], out=str(out), dataset_from="source", decimals=1))
-    text = summary(run_dirs, label)
-    write_atomic(out / RESULTS, text)
+    text = run_demo(args.out, args.steps, args.seeds, args.seed, args.episodes, args.dataset, args.overrides)
     print(f"\n{text}", end="")
-    print(f"wrote {out / RESULTS}", file=sys.stderr)
-    return code
+    return 0

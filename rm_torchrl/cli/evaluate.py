@@ -11,6 +11,9 @@ import math
 import sys
 
 
+HELP = "evaluate a run's checkpoint in its env, as the trainer does"
+
+
 def add_arguments(p) -> None:
     p.add_argument("run_dir", help="a run directory (recipe.yaml and checkpoint.pt)")
     p.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")

@@ -9,6 +9,9 @@ from rm_torchrl.progress import progress_bar
 from rm_torchrl.errors import RMError
 
 
+HELP = "record scripted demonstrations as a local Minari dataset (atomic)"
+
+
 def add_arguments(p) -> None:
     """The flags of ``rmrl generate`` (for ``cli/main.py``)."""
     from rm_torchrl.generate import GENERATORS

@@ -9,6 +9,9 @@ from rm_torchrl.data.d4rl_to_minari import IMPORT_METADATA_KEY, import_d4rl
 from rm_torchrl.data.embedded import expand_embedded
 
 
+HELP = "write a D4RL HDF5 file as a local Minari dataset (atomic)"
+
+
 def add_arguments(p) -> None:
     """The flags of ``rmrl import-d4rl`` (for ``cli/main.py``)."""
     from rm_torchrl.data.d4rl import EPISODE_ENDS

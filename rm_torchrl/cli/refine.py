@@ -1,10 +1,12 @@
 """``rmrl refine``: load, run the refinement stages one by one with a progress bar, write atomically."""
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from pathlib import Path
 
+from rm_torchrl.cli.options import add_source, constraint
 from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.data.sources import load_dataset
@@ -19,6 +21,28 @@ from rm_torchrl.segments import run_starts
 #: Recipe keys and their defaults (None: required).
 RECIPE_KEYS = {"dataset": None, "events": None, "alpha": 1.0, "episode_ends": "auto", "constraints": [], "out": None,
                "reuse": False}
+
+
+HELP = "refine a dataset with an event-ordered reward machine"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="YAML", help="a refine recipe (recipes/refine/*.yaml); flags override it")
+    add_source(p, required=False)
+    p.add_argument("--alpha", help="fraction of shortest sub-trajectories kept per group, in (0, 1] (default 1)")
+    p.add_argument("--constraint", action="append", type=constraint, metavar="A<B",
+                   help="event A must come before event B in the chosen order (repeatable)")
+    p.add_argument("--reuse", action=argparse.BooleanOptionalAction, default=None,
+                   help="beyond the paper: bring back the sub-trajectories the splice abandons, in the group of "
+                        "their new event on the best order (default: off, the paper's refinement)")
+    p.add_argument("--out", metavar="DIR", help="output directory (data/ and report.json)")
+    p.add_argument("--minari-name", metavar="NAME",
+                   help="also write the refined data as the local Minari dataset NAME (namespace/name-vN): one "
+                        "episode per sub-trajectory, observations with the RM state")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out if it is an earlier refine output holding only what refine wrote")
+    p.add_argument("--overwrite-minari", action="store_true",
+                   help="replace the Minari dataset --minari-name if an earlier rmrl refine --minari-name wrote it")
 
 
 def refine_with_progress(data, spec, alpha, constraints, desc: str = "refine", reuse: bool = False):

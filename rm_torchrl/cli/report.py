@@ -1,26 +1,15 @@
 """``rmrl report RUN_DIR... [--out DIR]``: Table 1, Table 2 and Figure 5 of the paper from training runs.
 
-Writes ``DIR/results.md`` (what was measured, the final scores per dataset x method as mean ± std
-over seeds, or the value alone for one seed, and their IQM with its bootstrap CI; the IQMs over datasets
-and the probabilities that Ours improves on each baseline; the refinement stage sizes),
-``DIR/aggregates.json`` (those statistics, for programs), ``DIR/learning_curves.png``,
-``DIR/performance_profile.png`` when any dataset is scored and, when any run trained on refined data,
-``DIR/dataset_sizes.png``; every file atomically. Prints Table 1 on stdout.
+What it writes is :func:`rm_torchrl.report.write.write_report`'s; prints Table 1 on stdout.
 """
 from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.files import write_atomic
 
-RESULTS = "results.md"
-CURVES = "learning_curves.png"
-SIZES = "dataset_sizes.png"
-AGGREGATES = "aggregates.json"
-PROFILE = "performance_profile.png"
+HELP = "Table 1/Table 2 in Markdown and learning curves from training runs"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -45,76 +34,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from rm_torchrl.report.plots import plot_dataset_sizes, plot_learning_curves, plot_performance_profile
-    from rm_torchrl.report.runs import group_runs, load_runs
-    from rm_torchrl.report.stats import REPS, aggregate, write_json
-    from rm_torchrl.report.tables import describe, nonfinite_lines, results_markdown, results_table
+    from functools import partial
 
-    if args.decimals < 0 or args.decimals > 6:
-        raise RMError(f"--decimals must lie in 0..6, got {args.decimals}")
-    if getattr(args, "gifs", False) and getattr(args, "gif_steps", 100) < 1:
-        raise RMError(f"--gif-steps must be positive, got {args.gif_steps}")
-    skipped: list[str] = []
-    runs = load_runs(args.paths, dataset_from=args.dataset_from, skipped=skipped)
-    for line in skipped:
-        print(f"rmrl report: left out {line}", file=sys.stderr)
-    groups = group_runs(runs)
-    for line in nonfinite_lines(groups):
-        print(f"rmrl report: left out of the statistics: {line}", file=sys.stderr)
-    reps = getattr(args, "reps", None)  # rmrl demo's Namespace has none
-    stats = aggregate(groups, REPS if reps is None else reps)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise RMError(f"--out {out} exists and is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise RMError(f"cannot create {out}: {err.strerror}") from None
+    from rm_torchrl.report.write import write_report
 
-    refined = any(r.stages is not None for r in runs)
-    figures = [("Learning curves", CURVES)] + ([("Performance profile", PROFILE)] if stats.profiles else []) + (
-        [("Dataset size after each refinement stage", SIZES)] if refined else [])
-    written = [plot_learning_curves(groups, out / CURVES)]
-    if stats.profiles:
-        written.append(plot_performance_profile(stats, out / PROFILE))
-    if refined:
-        written.append(plot_dataset_sizes(runs, out / SIZES))
-    for name, wanted in ((PROFILE, stats.profiles), (SIZES, refined)):
-        if not wanted and (out / name).is_file():
-            (out / name).unlink()  # a stale figure from an earlier report (of refined or scored runs)
-    write_json(stats, out / AGGREGATES)
-    written.append(out / AGGREGATES)
-    text = results_markdown(runs, groups, args.decimals, figures, skipped, stats)
-    gif_error = None
-    if getattr(args, "gifs", False):  # callers building their own Namespace (rmrl demo) leave it out
-        try:
-            text += _gifs(runs, out, getattr(args, "gif_steps", 100))
-        except RMError as err:  # no OpenGL backend, say: the tables and figures are still written
-            gif_error = err
-    write_atomic(out / RESULTS, text)
-    written.insert(0, out / RESULTS)
+    gifs = None
+    if args.gifs:
+        if args.gif_steps < 1:
+            raise RMError(f"--gif-steps must be positive, got {args.gif_steps}")
+        from rm_torchrl.train.video import policy_gifs
 
-    # the budget beside the numbers
-    print("\n".join([*describe(runs, groups, stats), "", results_table(groups, args.decimals, stats)]))
-    print(f"wrote {', '.join(str(p) for p in written)} ({len(runs)} run{'s' * (len(runs) != 1)})", file=sys.stderr)
-    if gif_error is not None:
-        raise RMError(f"{out / RESULTS} is written without the GIFs of --gifs: {gif_error}")
+        gifs = partial(policy_gifs, steps=args.gif_steps)
+    write_report(args.paths, args.out, args.dataset_from, args.decimals, args.reps, extra=gifs)
     return 0
-
-
-def _gifs(runs, out: Path, steps: int) -> str:
-    """A GIF of one episode of each run's last checkpoint, and the Markdown that shows them."""
-    from rm_torchrl.train.policy import load_policy
-
-    (out / "gifs").mkdir(exist_ok=True)
-    lines = ["", "## Final policies", ""]
-    for run in sorted(runs, key=lambda r: r.path.name):
-        loaded = load_policy(run.path)
-        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15,
-                           max_steps=min(steps, loaded.recipe.eval.max_steps))
-        lines.append(f"**{run.path.name}** ({run.method}, step {loaded.step}): ![{run.path.name}](gifs/{gif.name})")
-        lines.append("")
-    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:

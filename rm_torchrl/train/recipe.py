@@ -130,6 +130,16 @@ def compose_recipe(path=None, overrides=()) -> DictConfig:
         raise RMError(f"recipe {path.name} (or an option it composes) is not valid YAML: {yaml_problem(err)}") from None
 
 
+def split_recipe_args(items: list[str]) -> tuple[str | None, list[str]]:
+    """``[RECIPE.yaml] key=value ...`` (the arguments of ``rmrl train``) -> (recipe or None, overrides)."""
+    if items and "=" not in items[0]:
+        return items[0], list(items[1:])
+    stray = [a for a in items if "=" not in a]
+    if stray:
+        raise RMError(f"expected key=value overrides after the recipe, got {stray}")
+    return None, list(items)
+
+
 def load_recipe(path=None, overrides=()) -> Recipe:
     """The checked recipe at ``path`` (default ``recipes/train.yaml``) with ``overrides`` applied.
 

@@ -33,6 +33,29 @@ FROZEN = ("seed", "data", "rm", "method", "network", "optim", "trainer.steps", "
 _STATE_KEYS = ("step", "loss", "optimizers", "generator", "torch_rng", "obs_loc", "obs_scale", "recipe")
 
 
+class RunBusy(RMError):
+    """The run directory is locked by another process, which trains it now. ``rmrl train`` exits 75 on it
+    (sysexits' EX_TEMPFAIL: try again later), so a launcher can wait for that run instead of counting a failure."""
+
+    exit_status = 75
+
+
+def lock_holder(run_dir: Path) -> str | None:
+    """The pid (as the lock file records it) of the process holding ``run_dir``'s :class:`RunLock`, else None;
+    takes nothing and creates nothing."""
+    try:
+        fd = os.open(Path(run_dir) / LOCK, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return None
+    except OSError:
+        return os.read(fd, 64).decode(errors="replace").strip() or "another process"
+    finally:
+        os.close(fd)
+
+
 class RunLock:
     """An exclusive ``flock`` on ``RUN_DIR/.lock`` for the run's life.
 
@@ -56,7 +79,7 @@ class RunLock:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
             os.close(fd)
             if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
-                raise RMError(f"run directory {self.path.parent} is in use by process {holder}") from None
+                raise RunBusy(f"run directory {self.path.parent} is in use by process {holder}") from None
             raise
         try:
             os.ftruncate(fd, 0)
