@@ -33,7 +33,7 @@ import numpy as np
 
 from common import RESULTS, ROOT
 
-from rm_torchrl.cli.train import run_grid
+from rm_torchrl.launch import run_grid
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.report.runs import read_eval_csv, read_scalars
 from rm_torchrl.train.recipe import load_recipe
@@ -226,6 +226,6 @@ if __name__ == "__main__":
     try:
         raise SystemExit(main())
     except KeyboardInterrupt as err:  # a signal to run_grid: its runs checkpointed and say where
-        from rm_torchrl.cli.main import interrupted
+        from rm_torchrl.launch import exit_status
 
-        raise SystemExit(interrupted(err, Path(__file__).name))
+        raise SystemExit(exit_status(err, Path(__file__).name))

@@ -33,7 +33,7 @@ import yaml
 
 from common import CHOICES, LABELS, PAPER, RESULTS, collect, gather, mean_std, pending
 
-from rm_torchrl.cli.train import run_grid
+from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves

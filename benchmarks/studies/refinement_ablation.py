@@ -34,7 +34,7 @@ import numpy as np
 
 from common import CHOICES, RESULTS, ROOT, mean_std
 
-from rm_torchrl.cli.train import run_grid
+from rm_torchrl.launch import run_grid
 from rm_torchrl.errors import RMError
 from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices

@@ -32,7 +32,7 @@ import numpy as np
 from common import (CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
                     pending, rmrl, row)
 
-from rm_torchrl.cli.train import run_grid
+from rm_torchrl.launch import run_grid
 from rm_torchrl.errors import RMError
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile
@@ -286,8 +286,8 @@ if __name__ == "__main__":
     try:
         raise SystemExit(main())
     except KeyboardInterrupt as err:  # a signal to run_grid: its runs checkpointed and say where
-        from rm_torchrl.cli.main import interrupted
+        from rm_torchrl.launch import exit_status
 
-        raise SystemExit(interrupted(err, Path(__file__).name))
+        raise SystemExit(exit_status(err, Path(__file__).name))
     except RMError as err:  # bad input (--reps 0, a broken run directory): one line, no traceback
         raise SystemExit(f"{Path(__file__).name}: error: {err}")
