@@ -8,7 +8,7 @@ from torch import nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, ValueEstimators
 
-from rm_torchrl.methods.iql import SharedForwardIQLLoss
+from rm_torchrl.methods.iql import MAX_WEIGHT, SharedForwardIQLLoss
 from rm_torchrl.methods.losses import ForeachSoftUpdate
 from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 
@@ -84,6 +84,25 @@ def test_same_losses_and_gradients(seed, generic, actor):
         else:
             torch.testing.assert_close(p.grad, q.grad, msg=k)
 
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["fast", "generic"])
+def test_advantage_gives_the_weights_the_actor_loss_uses(generic):
+    """``advantage()`` is what diagnostics read: the actor loss must weigh the batch by exactly these, the cap
+    included."""
+    loss = build(SharedForwardIQLLoss, 0, generic)
+    loss.temperature = 50.0  # advantages of a few tenths put some weights at the cap
+    with torch.no_grad():
+        for p in loss.target_qvalue_network_params.values(True, True):
+            p.add_(0.1)
+    data = batch(seed=3)
+    advantage, weight = loss.advantage(data)
+    assert (weight == MAX_WEIGHT).any() and (weight < MAX_WEIGHT).any()
+    torch.testing.assert_close(weight, torch.exp(50.0 * advantage).clamp_max(MAX_WEIGHT))
+    out = loss(data.clone())
+    torch.testing.assert_close(out["loss_actor"], -(weight * loss.log_prob(data)).mean())
+    torch.testing.assert_close(out["advantage_mean"], advantage.mean())
+    torch.testing.assert_close(out["weight_clamped"], (weight >= MAX_WEIGHT).float().mean())
 
 def test_gaussian_actor_is_the_iql_authors_policy():
     """Normal(tanh(mean), exp(clip(log_std))): bounded log-likelihood at the action bound, mean as the

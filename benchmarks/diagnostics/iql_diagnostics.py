@@ -4,14 +4,14 @@
     python benchmarks/diagnostics/iql_diagnostics.py RUN_DIR --checkpoints A.pt B.pt ...  # earlier checkpoints of the run
 
 Prints JSON: per RM state (named by its events in order), the number of transitions, the spread of
-the advantage A = min Q(s, a) - V(s), the effective sample size of the AWR weights exp(beta A)
-(1 = every transition weighted alike, as in behaviour cloning), the actor's negative
-log-likelihood of the dataset actions, how far its deterministic action is from them (mean squared
-error per dimension) and how often it sits at the action bound (|a| > 0.99), and how far its deterministic action moves when only the RM
-encoding is swapped for another state's (0: the policy ignores the RM state). ``by_phase`` splits each
-RM state's transitions by where they sit in their sub-trajectory (fifths, start to event): the AWR
-weight there relative to the state's mean, the actor's error, and with ``--against CHECKPOINT`` (another
-run's, same data) how far the two actors' deterministic actions are apart.
+the advantage A = min Q(s, a) - V(s), the effective sample size of the AWR weights exp(beta A), capped as the
+actor loss caps them (both from the loss's ``advantage``; 1 = every transition weighted alike, as in behaviour
+cloning), the actor's negative log-likelihood of the dataset actions, how far its deterministic action is from
+them (mean squared error per dimension) and how often it sits at the action bound (|a| > 0.99), and how far its
+deterministic action moves when only the RM encoding is swapped for another state's (0: the policy ignores the
+RM state). ``by_phase`` splits each RM state's transitions by where they sit in their sub-trajectory (fifths,
+start to event): the AWR weight there relative to the state's mean, the actor's error, and with
+``--against CHECKPOINT`` (another run's, same data) how far the two actors' deterministic actions are apart.
 """
 from __future__ import annotations
 
@@ -79,12 +79,10 @@ def diagnose(run_dir: Path, overrides: list[str] = (), checkpoint: Path | None =
     method, state = trained_method(recipe, data, checkpoint or run_dir / "checkpoint.pt")
     loss, beta = method.loss, recipe.method.iql.temperature
     td = data.transitions
+    adv, weight = loss.advantage(td)
     with torch.no_grad():
-        q = loss._q(td, loss.target_qvalue_network_params).min(0)[0]
-        v = loss._v(td, loss.value_network_params)
-        adv = q - v
-        weight = torch.exp(beta * adv).clamp_max(100)
-        nll = -loss._log_prob(td)
+        v = loss.state_value(td)
+        nll = -loss.log_prob(td)
     action = deterministic_action(method, td, data.obs_keys)
     against_action = None if against is None else deterministic_action(trained_method(recipe, data, against)[0], td, data.obs_keys)
     phase = phase_of(td)

@@ -11,6 +11,9 @@ from torchrl.objectives.value import TD0Estimator
 
 from rm_torchrl.methods.networks import ConcatMLP, GaussianHead, _Splat
 
+#: the cap on the AWR weights exp(temperature * A), IQLLoss's: a few large advantages must not own the actor's batch
+MAX_WEIGHT = 100.0
+
 
 class SharedForwardIQLLoss(IQLLoss):
     """Same losses and gradients as ``IQLLoss`` (eqs. 2-4), with fewer and cheaper forward passes.
@@ -35,13 +38,13 @@ class SharedForwardIQLLoss(IQLLoss):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         with torch.no_grad():
-            min_q = self._q(tensordict, self.target_qvalue_network_params).min(0)[0]
-        value = self._v(tensordict, self.value_network_params)
+            min_q = self.min_q(tensordict)
+        value = self.state_value(tensordict)
         loss_value = self._reduce_loss(self.loss_value_diff(min_q - value, self.expectile), tensordict=tensordict)
 
-        log_prob = self._log_prob(tensordict)
+        log_prob = self.log_prob(tensordict)
         advantage = min_q - value.detach()
-        weight = torch.exp(advantage * self.temperature).clamp_max(100)
+        weight = self.awr_weight(advantage)
         loss_actor = self._reduce_loss(-(weight * log_prob), tensordict=tensordict)
 
         if self._plain_td0(tensordict):
@@ -55,9 +58,28 @@ class SharedForwardIQLLoss(IQLLoss):
             "entropy": -log_prob.detach().mean(),
             # diagnostics: where the advantage weights sit, and how much of the batch they saturate
             "advantage_mean": advantage.mean(),
-            "weight_clamped": (weight >= 100).float().mean(),
+            "weight_clamped": (weight >= MAX_WEIGHT).float().mean(),
             "value_mean": value.detach().mean(),
         })
+
+    def min_q(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The smaller of the twin target critics' Q(s, a), shape [batch]: what V and the advantage are measured on."""
+        return self._q(tensordict, self.target_qvalue_network_params).min(0)[0]
+
+    def state_value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """V(s) of the value network, shape [batch]."""
+        return self._v(tensordict, self.value_network_params)
+
+    def awr_weight(self, advantage: torch.Tensor) -> torch.Tensor:
+        """exp(temperature * A) capped at ``MAX_WEIGHT``: each transition's weight in the actor loss (eq. 4)."""
+        return torch.exp(advantage * self.temperature).clamp_max(MAX_WEIGHT)
+
+    @torch.no_grad()
+    def advantage(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """A = min Q(s, a) - V(s) of each transition and its AWR weight, as the actor loss weighs the batch; for
+        diagnostics (how flat the weights are, where they saturate), without gradients."""
+        advantage = self.min_q(tensordict) - self.state_value(tensordict)
+        return advantage, self.awr_weight(advantage)
 
     def _q(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
         """The twin Q(s, a), shape [2, batch]."""
@@ -77,7 +99,8 @@ class SharedForwardIQLLoss(IQLLoss):
             self.value_network(td_v)
         return td_v.get(self.tensor_keys.value).squeeze(-1)
 
-    def _log_prob(self, tensordict: TensorDictBase) -> torch.Tensor:
+    def log_prob(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The actor's log-likelihood of the batch's actions, shape [batch] (with gradient, as the actor loss needs)."""
         action = tensordict.get(self.tensor_keys.action)
         if self._fast:
             td_module, dist_module = self.actor_network.module
