@@ -85,19 +85,35 @@ def test_refine_door_human_reproduces_table2(capsys, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["door-human"]  # no temporary leftovers
 
 
-def test_refine_door_human_from_recipe(capsys, tmp_path, monkeypatch):
-    """The recipe finds the packaged file from any directory (here one without ../shared beside it)."""
+def test_refine_door_human_from_its_dataset_option(capsys, tmp_path, monkeypatch):
+    """``rmrl refine dataset=door-human-v0`` composes the recipes' dataset option as ``rmrl train`` does: the
+    packaged file, its events and alpha, from any directory (here one without ../shared beside it), into
+    runs/refine/<data.name> unless --out says otherwise."""
     monkeypatch.chdir(tmp_path)
-    out = tmp_path / "recipe-out"
-    code, stdout, err = run(capsys, "refine", "--config", ROOT / "recipes" / "refine" / "door-human.yaml", "--out", out)
+    code, stdout, err = run(capsys, "refine", "dataset=door-human-v0")
     assert code == 0, err
-    report = check_door_human_output(out)
-    assert report["episode_ends"] == "terminals"
-    assert report["dataset"] == "embedded:door-human-v0.hdf5"
-    relative = tmp_path / "relative-out"  # the README's spelling, from a directory without recipes/ in it
-    code, _, err = run(capsys, "refine", "--config", "recipes/refine/door-human.yaml", "--out", relative)
+    report = check_door_human_output(tmp_path / "runs" / "refine" / "door-human-v0")
+    assert report["dataset"] == str(DOOR_HUMAN_V0) and report["alpha"] == 0.5
+    flags = tmp_path / "flags"  # the same refinement spelled with flags
+    code, _, err = run(capsys, "refine", "--dataset", DOOR_HUMAN_V0, "--events", "door", "--alpha", "0.5", "--out", flags)
     assert code == 0, err
-    assert check_door_human_output(relative) == report
+    assert check_door_human_output(flags)["stages"] == report["stages"]
+    lower = tmp_path / "lower"  # a data.* override and a flag win over the option's values
+    code, _, err = run(capsys, "refine", "dataset=door-human-v0", "data.alpha=0.25", "--out", lower)
+    assert code == 0, err
+    assert load_report(lower)["alpha"] == 0.25 and load_report(lower)["stages"]["shorter"] < report["stages"]["shorter"]
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["dataset=door-human-v0", "trainer.steps=5"], "rmrl refine takes dataset=NAME and data.* overrides, got "
+                                                   "['trainer.steps=5']"),
+    (["dataset=door-human-v0", "data.refine=none"], "data.refine=none asks for the raw data"),
+    (["dataset=door-human-v0", "data.alpah=0.5"], "alpah"),
+    (["dataset=no-such-dataset"], "no-such-dataset"),
+])
+def test_refine_overrides_that_are_refused(capsys, tmp_path, overrides, message):
+    assert_error(capsys, "refine", ["refine", *overrides, "--out", tmp_path / "o"], message)
+    assert not (tmp_path / "o").exists()
 
 
 @needs_kitchen
@@ -164,23 +180,13 @@ def test_refine_reuse_brings_back_what_the_splice_abandons(capsys, tmp_path, lat
     assert int(data["reused"].sum()) == report["reuse"]["rows"] == stages["reused"] - stages["ordered"]
     assert set(data["source_episode"][data["reused"]].tolist()) == {5}
     assert any("Reused Sub-traj." in line and f"{stages['reused']:,}" in line for line in stdout.splitlines()), stdout
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"dataset: {late_reach}\nevents: door\nreuse: true\n")
-    code, _, err = run(capsys, "refine", "--config", recipe, "--out", tmp_path / "on")
+    source = ["dataset=door-human-v0", f"data.source={late_reach}", "data.alpha=1.0"]  # the option, on this file
+    code, _, err = run(capsys, "refine", *source, "data.refine=reuse", "--out", tmp_path / "on")
     assert code == 0, err
     assert load_report(tmp_path / "on")["stages"] == stages
-    code, _, err = run(capsys, "refine", "--config", recipe, "--no-reuse", "--out", tmp_path / "off")
+    code, _, err = run(capsys, "refine", *source, "data.refine=reuse", "--no-reuse", "--out", tmp_path / "off")
     assert code == 0, err
     assert load_report(tmp_path / "off")["stages"] == paper["stages"]
-
-
-@pytest.mark.parametrize("value", ['"yes"', "1", "[true]"])
-def test_refine_recipe_reuse_must_be_a_bool(capsys, tmp_path, tiny, value):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"dataset: {tiny}\nevents: door\nreuse: {value}\n")
-    assert_error(capsys, "refine", ["refine", "--config", recipe, "--out", tmp_path / "o"],
-                 "reuse must be true or false, got")
-    assert not (tmp_path / "o").exists()
 
 
 def test_output_exists_without_and_with_overwrite(capsys, tmp_path, tiny):
@@ -213,12 +219,6 @@ def _umask() -> int:
 def test_a_directory_as_dataset_is_named_as_such(capsys, tmp_path):
     assert_error(capsys, "refine", ["refine", "--dataset", tmp_path, "--events", "door", "--out", tmp_path / "o"],
                  "is a directory: give a D4RL .hdf5 file, minari:<dataset id> or a local Minari dataset name")
-
-
-def test_refine_recipe_entries_of_the_wrong_type(capsys, tmp_path):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text("dataset: 5\nevents: door\nout: x\n")
-    assert_error(capsys, "refine", ["refine", "--config", recipe], "dataset must be a string, got 5")
 
 
 def test_output_paths_that_are_refused(capsys, tmp_path, tiny, monkeypatch):
@@ -496,13 +496,11 @@ def test_malformed_yaml_event_spec_is_a_clean_error(capsys, tmp_path, tiny):
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("where", ["events", "config"])
-def test_malformed_yaml_error_is_one_line(capsys, tmp_path, tiny, where):
+def test_malformed_yaml_error_is_one_line(capsys, tmp_path, tiny):
     bad = tmp_path / "bad.yaml"
-    bad.write_text(BAD_YAML if where == "events" else "dataset: [x\nalpha: 0.5\n")
-    argv = ["refine", "--dataset", tiny, "--out", tmp_path / "o"]
-    argv += ["--events", bad] if where == "events" else ["--events", "door", "--config", bad]
-    assert_error(capsys, "refine", argv, "not valid YAML")
+    bad.write_text(BAD_YAML)
+    assert_error(capsys, "refine", ["refine", "--dataset", tiny, "--out", tmp_path / "o", "--events", bad],
+                 "not valid YAML")
 
 
 @pytest.mark.parametrize("spec,match", [
@@ -515,19 +513,6 @@ def test_invalid_event_spec_file(capsys, tmp_path, spec, match):
     path = tmp_path / "spec.yaml"
     path.write_text(spec)
     assert_error(capsys, "rm-graph", ["rm-graph", "--events", path], match)
-
-
-def test_unknown_recipe_key(capsys, tmp_path, tiny):
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"dataset: {tiny}\nevents: door\nalpah: 0.5\n")
-    message = assert_error(capsys, "refine", ["refine", "--config", recipe, "--out", tmp_path / "o"],
-                           "unknown key(s) ['alpah']")
-    assert "alpha" in message  # lists the allowed keys
-    assert not (tmp_path / "o").exists()
-
-
-def test_recipe_missing(capsys, tmp_path):
-    assert_error(capsys, "refine", ["refine", "--config", tmp_path / "none.yaml"], "cannot read recipe")
 
 
 def test_missing_dataset(capsys, tmp_path):

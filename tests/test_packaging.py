@@ -59,7 +59,7 @@ def test_installed_wheel_trains_from_any_directory(wheel, tmp_path):
     help_text = rmrl("train", "--help").stdout
     assert f"recipes folder {target / 'rm_torchrl' / 'recipes'}" in help_text
     assert "door-human-v0" in help_text and "ours-reuse" in help_text
-    refined = rmrl("refine", "--config", "recipes/refine/door-human.yaml", "--out", "refined")
+    refined = rmrl("refine", "dataset=door-human-v0", "--out", "refined")
     assert refined.returncode == 0, refined.stderr
     assert "wrote 2,261 transitions" in refined.stdout
     trained = rmrl("train", "dataset=door-human-v0", "method=ours", "trainer.steps=10", "trainer.compile=false",
