@@ -4,7 +4,8 @@ Trains ours (``recipes/door-human-v0-ours.yaml``: IQL on the refined data with t
 authors' Gaussian actor, cosine actor schedule, AntMaze expectile and temperature) with
 lambda_Q = lambda_pi = lambda for every lambda in ``--lambdas`` and every seed in ``--seeds``, plus
 control arms with IQL's Adroit expectile and temperature (flat AWR weights on the RM reward) and
-with the tanh-squashed actor; then writes the study's table, curves and summary. Resumable: run it
+with the tanh-squashed actor; then writes the study's table, curves and summary, and per run
+``runs/<run>/`` (``eval.csv``, the resolved ``recipe.yaml``, the logged ``scalars/``). Resumable: run it
 again and finished runs are skipped (also those whose results an earlier session committed), killed
 ones resumed from their checkpoint. The choice rule is fixed before any run: the arm with the
 highest mean D4RL score over the last ``--last`` evaluations (5: steps 42k-50k of 50k), averaged over
@@ -31,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, ROOT
+from common import RESULTS, ROOT, mean_std
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.events.spec import load_event_spec
@@ -90,12 +91,12 @@ KEPT_SCALARS = ("entropy", "weight_clamped", "advantage_mean", "value_mean", "lo
 def finished(args, run: str) -> tuple[dict, dict] | None:
     """(evaluations, scalars) of a run that reached ``--steps``: from its run directory, or else from the
     copy committed with the results by an earlier session (run directories do not outlive a session)."""
-    run_dir, kept = Path(args.out) / run, Path(args.results)
+    run_dir, kept = Path(args.out) / run, Path(args.results) / "runs" / run
     if (run_dir / "eval.csv").is_file():
         evals, scalars = read_eval_csv(run_dir / "eval.csv"), read_scalars(run_dir)
-    elif (kept / f"eval-{run}.csv").is_file():
-        evals = read_eval_csv(kept / f"eval-{run}.csv")
-        scalars = {p.stem: np.loadtxt(p, delimiter=",", ndmin=2) for p in sorted((kept / f"scalars-{run}").glob("*.csv"))}
+    elif (kept / "eval.csv").is_file():
+        evals = read_eval_csv(kept / "eval.csv")
+        scalars = {p.stem: np.loadtxt(p, delimiter=",", ndmin=2) for p in sorted((kept / "scalars").glob("*.csv"))}
     else:
         return None
     return (evals, scalars) if len(evals["step"]) and int(evals["step"][-1]) >= args.steps else None
@@ -154,13 +155,13 @@ def write_results(args, arms: dict) -> None:
                      events[:, -args.last:].mean(1), float(np.median(sem)) * 100 / span))
         for seed, (run_dir, evals, scalars) in seeds.items():
             if (run_dir / "eval.csv").is_file():
-                shutil.copyfile(run_dir / "eval.csv", results / f"eval-{run_dir.name}.csv")
-                shutil.copyfile(run_dir / "recipe.yaml", results / f"recipe-{run_dir.name}.yaml")
-                (results / f"scalars-{run_dir.name}").mkdir(exist_ok=True)
+                dest = results / "runs" / run_dir.name
+                (dest / "scalars").mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(run_dir / "eval.csv", dest / "eval.csv")
+                shutil.copyfile(run_dir / "recipe.yaml", dest / "recipe.yaml")
                 for key in KEPT_SCALARS:
                     if (run_dir / "logs" / "scalars" / f"{key}.csv").is_file():
-                        shutil.copyfile(run_dir / "logs" / "scalars" / f"{key}.csv",
-                                        results / f"scalars-{run_dir.name}" / f"{key}.csv")
+                        shutil.copyfile(run_dir / "logs" / "scalars" / f"{key}.csv", dest / "scalars" / f"{key}.csv")
             summary.append({"arm": label, "seed": seed, "steps": int(evals["step"][-1]),
                             "eval_episodes": int(evals["episodes"][-1]), "final_score": float(evals["score"][-1]),
                             f"last{args.last}_score": float(evals["score"][-args.last:].mean()),
@@ -174,9 +175,6 @@ def write_results(args, arms: dict) -> None:
     fig.tight_layout()
     fig.savefig(results / "curves.png", dpi=110)
 
-    def cell(values):
-        return f"{values.mean():.1f} ± {values.std(ddof=1):.1f}" if len(values) > 1 else f"{values.mean():.1f}"
-
     # ties as printed go to the later arm: with --temperatures ascending, the larger beta (more IQL, less BC)
     best = max(enumerate(rows), key=lambda ir: (round(float(ir[1][3].mean()), 1), ir[0]))[1][0] if rows else None
     n_events = load_event_spec(load_recipe(*source(args)).data.events).n
@@ -185,7 +183,7 @@ def write_results(args, arms: dict) -> None:
              "|---|---|---|---|---|---|---|---|"]
     for lam, n, final, last, mean, peak, succ, ev, _ in rows:
         mark = " **(chosen)**" if lam == best else ""
-        lines.append(f"| {lam}{mark} | {n} | {cell(final)} | {cell(last)} | {cell(mean)} | {cell(peak)} | "
+        lines.append(f"| {lam}{mark} | {n} | {mean_std(final)} | {mean_std(last)} | {mean_std(mean)} | {mean_std(peak)} | "
                      f"{succ.mean():.0%} | {ev.mean():.2f} |")
     noise = np.median([r[8] for r in rows]) if rows else float("nan")
     (results / "table.md").write_text("\n".join(lines) + f"\n\nStandard error of one evaluation's score "
