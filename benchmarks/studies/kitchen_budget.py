@@ -16,6 +16,13 @@ from rm_torchrl.report.runs import read_eval_csv
 TASK = 25.0  # FrankaKitchen score points per completed task
 
 
+def table1_run(name: str) -> Path:
+    """Table 1's committed run ``name``, or its copy under ``superseded/`` once a newer method replaced it (the
+    probe compared with the runs of its time)."""
+    current = RESULTS / "table1" / "runs" / name
+    return current if current.is_dir() else RESULTS / "table1" / "superseded" / name
+
+
 def row(label: str, budget: str, csv: Path) -> str:
     e = read_eval_csv(csv)
     steps, tasks = e["step"].astype(int), e["score"] / TASK
@@ -28,8 +35,8 @@ def main() -> int:
     print("| method | budget | final (tasks of 4) | last 5 evaluations | mean over evaluations | best (step) | "
           "evaluations with ≥ 2.5 tasks |\n|---|---|---|---|---|---|---|")
     for method, label in (("ours", "Ours"), ("iql", "IQL"), ("bc", "BC")):
-        print(row(label, "100k", RESULTS / "kitchen-budget" / f"eval-kitchen-partial-{method}-100k-seed0.csv"))
-        print(row(label, "50k (Table 1)", RESULTS / "table1" / "runs" / f"kitchen-partial-{method}-seed0" / "eval.csv"))
+        print(row(label, "100k", RESULTS / "kitchen-budget" / "runs" / f"kitchen-partial-{method}-100k-seed0" / "eval.csv"))
+        print(row(label, "50k (Table 1)", table1_run(f"kitchen-partial-{method}-seed0") / "eval.csv"))
     return 0
 
 
