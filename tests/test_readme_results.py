@@ -1,4 +1,4 @@
-"""benchmarks/readme_results.py: the README's results blocks, generated from the committed summaries."""
+"""benchmarks/readme_results.py: the results blocks of benchmarks/FINDINGS.md, generated from the committed summaries."""
 import json
 import subprocess
 import sys
