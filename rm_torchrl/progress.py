@@ -64,3 +64,31 @@ def progress_bar(*args, file=None, **kwargs) -> tqdm:
     kwargs.setdefault("mininterval", LOG_INTERVAL)
     kwargs.setdefault("maxinterval", LOG_INTERVAL * 4)
     return LineProgress(*args, file=file, ncols=100, leave=True, **kwargs)
+
+
+class Bars:
+    """Progress callbacks for library functions that report ``(done, total)``, one bar per description: each opens
+    on its first report (an early error prints no empty bar) and all close when the block ends.
+
+        with Bars() as bars:
+            import_d4rl(..., progress=lambda done, total: bars.update("import", done, total, unit="episode"))
+    """
+
+    def __init__(self, file=None):
+        self.file, self.bars = file or sys.stderr, {}
+
+    def update(self, desc: str, done: int, total: int, postfix: str | None = None, unit: str = "it") -> None:
+        bar = self.bars.get(desc)
+        if bar is None:
+            bar = self.bars[desc] = progress_bar(total=total, desc=desc, unit=unit, file=self.file, leave=False)
+        bar.total = total
+        if postfix is not None:
+            bar.set_postfix_str(postfix)
+        bar.update(done - bar.n)
+
+    def __enter__(self) -> "Bars":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for bar in self.bars.values():
+            bar.close()

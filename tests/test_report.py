@@ -423,10 +423,12 @@ def test_error_out_is_a_file(reported, tmp_path):
         cli_report.run(args(root / "door-human", out=tmp_path / "file"))
 
 
-def test_standalone_parser_and_exit_code(tmp_path, capsys):
-    parsed = cli_report.build_parser().parse_args(["a", "b"])
+def test_parser_defaults_and_exit_code(tmp_path, capsys):
+    from rm_torchrl.cli.main import build_parser, main
+
+    parsed = build_parser().parse_args(["report", "a", "b"])
     assert parsed.paths == ["a", "b"] and parsed.out == "reports" and parsed.dataset_from == "name"
-    assert cli_report.main([str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert main(["report", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert "rmrl report: error:" in capsys.readouterr().err
 
 

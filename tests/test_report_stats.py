@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from rm_torchrl.cli import report as cli_report
+from rm_torchrl.cli.main import build_parser, main
 from rm_torchrl.report import group_runs, load_runs
 from rm_torchrl.report.choices import first_free_seeds, read_choices
 from rm_torchrl.report.stats import REPS, _rliable, aggregate, improvement, iqm
@@ -40,7 +40,7 @@ def runs(root: Path, dataset: str, method: str, finals, score: str = "door", ste
 
 
 def report(root: Path, out: Path, *extra: str) -> dict:
-    assert cli_report.main([str(root), "--out", str(out), *extra]) == 0
+    assert main(["report", str(root), "--out", str(out), *extra]) == 0
     return json.loads((out / "aggregates.json").read_text())
 
 
@@ -173,10 +173,10 @@ def test_reps_option(tmp_path, capsys):
     runs(tmp_path / "runs", "door-human", "ours", [1, 2, 3])
     assert report(tmp_path / "runs", tmp_path / "out", "--reps", "50")["reps"] == 50
     assert "rliable, 50 resamples, seed 0" in (tmp_path / "out" / "results.md").read_text()
-    assert cli_report.build_parser().parse_args(["x"]).reps is None  # the default: stats.REPS
+    assert build_parser().parse_args(["report", "x"]).reps is None  # the default: stats.REPS
     capsys.readouterr()
     for reps in ("0", "2"):  # two resamples once gave CIs that excluded their own estimate
-        assert cli_report.main([str(tmp_path / "runs"), "--out", str(tmp_path / "o"), "--reps", reps]) == 2
+        assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "o"), "--reps", reps]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert err == [f"rmrl report: error: --reps must be at least 50 bootstrap resamples for a 95% interval, got {reps}"]
         assert not (tmp_path / "o").exists()

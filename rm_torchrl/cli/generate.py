@@ -2,12 +2,9 @@
 from __future__ import annotations
 
 import math
-import sys
-
-from rm_torchrl.progress import progress_bar
 
 from rm_torchrl.errors import RMError
-
+from rm_torchrl.progress import Bars
 
 HELP = "record scripted demonstrations as a local Minari dataset (atomic)"
 
@@ -43,80 +40,26 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import minari
-    from minari.storage import get_dataset_path
-
-    from rm_torchrl.generate import GENERATE_METADATA_KEY, GENERATORS, generate_dataset
+    from rm_torchrl.generate import GENERATORS, describe_generated, generate_dataset
+    from rm_torchrl.generate.cloned import CLONED, generate_cloned
+    from rm_torchrl.train.config import check_seed
 
     if args.noise is not None and not (math.isfinite(args.noise) and args.noise >= 0):
         raise RMError(f"--noise must be a finite number >= 0, got {args.noise}")
-    from rm_torchrl.train.config import check_seed
-
     check_seed(args.seed, "--seed")
-    from rm_torchrl.generate.cloned import CLONED
-
-    if args.generator in CLONED:
-        return _run_cloned(args)
-    policy_kwargs = {} if args.noise is None else {"noise": args.noise}
-    bar = None
-
-    def progress(kept: int, total: int, attempts: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = progress_bar(total=total, desc=f"generate {args.generator}", unit="episode", file=sys.stderr, leave=False)
-        bar.set_postfix_str(f"{attempts} attempts")
-        bar.update(kept - bar.n)
-
-    try:
-        dataset_id = generate_dataset(GENERATORS[args.generator], args.out_name, episodes=args.episodes,
-                                      seed=args.seed, workers=args.workers, max_steps=args.max_steps,
-                                      overwrite=args.overwrite, policy_kwargs=policy_kwargs, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
-    dataset = minari.load_dataset(dataset_id)
-    record = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {})
-    length = record.get("episode_length", {})
-    print(f"generated {dataset.total_episodes:,} episodes ({record.get('keep', 'kept')}; "
-          f"{dataset.total_steps:,} transitions) of "
-          f"{args.generator} in {record.get('attempts', '?')} attempts; episode length mean "
-          f"{length.get('mean', float('nan')):.1f}, min {length.get('min', '?')}, max {length.get('max', '?')}")
-    print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
-    events = GENERATORS[args.generator].events
-    if dataset.total_episodes >= 2 and events:
-        print(f"refine it with: rmrl refine --dataset {dataset_id} --events {events} --out ...")
-    return 0
-
-
-def _run_cloned(args) -> int:
-    import minari
-    from minari.storage import get_dataset_path
-
-    from rm_torchrl.generate import GENERATE_METADATA_KEY
-    from rm_torchrl.generate.cloned import generate_cloned
-
-    bars: dict = {}
-
-    def progress(stage: str, done: int, total: int) -> None:
-        if stage not in bars:
-            bars[stage] = progress_bar(total=total, desc=f"{args.generator} {stage}", file=sys.stderr, leave=False)
-        bars[stage].total = total
-        bars[stage].update(done - bars[stage].n)
-
-    try:
-        dataset_id = generate_cloned(args.generator, args.out_name, steps=args.steps, seed=args.seed,
-                                     workers=args.workers, demos_source=args.demos, overwrite=args.overwrite,
-                                     progress=progress, noise=0.1 if args.noise is None else args.noise,
-                                     bc_steps=args.bc_steps)
-    finally:
-        for bar in bars.values():
-            bar.close()
-    dataset = minari.load_dataset(dataset_id)
-    mix = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {}).get("mix", {})
-    print(f"generated {args.generator}: {dataset.total_steps:,} transitions in {dataset.total_episodes:,} episodes "
-          f"({mix.get('demo_episodes', '?')} demo episodes, {mix.get('demo_transitions', '?')} transitions; "
-          f"{mix.get('rollout_episodes', '?')} BC rollouts, {mix.get('rollout_transitions', '?')} transitions)")
-    print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
-    events = args.generator.split("-")[0]
-    print(f"refine it with: rmrl refine --dataset {dataset_id} --events {events} --out ...")
+    name = args.generator
+    with Bars() as bars:
+        if name in CLONED:
+            dataset_id = generate_cloned(name, args.out_name, steps=args.steps, seed=args.seed, workers=args.workers,
+                                         demos_source=args.demos, overwrite=args.overwrite,
+                                         progress=lambda stage, done, total: bars.update(f"{name} {stage}", done, total),
+                                         noise=0.1 if args.noise is None else args.noise, bc_steps=args.bc_steps)
+        else:
+            dataset_id = generate_dataset(
+                GENERATORS[name], args.out_name, episodes=args.episodes, seed=args.seed, workers=args.workers,
+                max_steps=args.max_steps, overwrite=args.overwrite,
+                policy_kwargs={} if args.noise is None else {"noise": args.noise},
+                progress=lambda kept, total, attempts: bars.update(f"generate {name}", kept, total,
+                                                                       f"{attempts} attempts", unit="episode"))
+    print(describe_generated(dataset_id, name))
     return 0

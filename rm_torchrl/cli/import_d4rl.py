@@ -1,12 +1,7 @@
 """``rmrl import-d4rl``: write a D4RL HDF5 file as a local Minari dataset, atomically, with a progress bar."""
 from __future__ import annotations
 
-import sys
-
-from rm_torchrl.progress import progress_bar
-
-from rm_torchrl.data.d4rl_to_minari import IMPORT_METADATA_KEY, import_d4rl
-from rm_torchrl.data.embedded import expand_embedded
+from rm_torchrl.progress import Bars
 
 
 HELP = "write a D4RL HDF5 file as a local Minari dataset (atomic)"
@@ -29,34 +24,12 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import minari
-    from minari.storage import get_dataset_path
+    from rm_torchrl.data.d4rl_to_minari import describe_import, import_d4rl
+    from rm_torchrl.data.embedded import expand_embedded
 
-    bar = None
-
-    def progress(written: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:  # opened on the first episode, so an early error prints no empty bar
-            bar = progress_bar(total=total, desc="import", unit="episode", file=sys.stderr, leave=False)
-        bar.update(written - bar.n)
-
-    try:
-        dataset_id = import_d4rl(expand_embedded(args.file), args.out_name, episode_ends=args.episode_ends, env_id=args.env_id,
-                                 overwrite=args.overwrite, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
-    dataset = minari.load_dataset(dataset_id)
-    record = dataset.storage.metadata.get(IMPORT_METADATA_KEY, {})
-    env = f", env {dataset.env_spec.id}" if dataset.env_spec is not None else ""
-    print(f"imported {args.file}: {dataset.total_episodes:,} episodes, {dataset.total_steps:,} transitions "
-          f"(episodes ended by {record.get('episode_ends', '?')}{env})")
-    skipped = record.get("skipped_single_step_episodes", 0)
-    if skipped:
-        print(f"skipped {skipped} single-step episode(s): they hold no transition")
-    print(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
-    if dataset.total_episodes < 2:
-        print("note: TorchRL's Minari reader (rmrl refine --dataset) needs at least 2 episodes", file=sys.stderr)
-    else:
-        print(f"read it with: rmrl refine --dataset {dataset_id} --events ... --out ...")
+    with Bars() as bars:
+        dataset_id = import_d4rl(expand_embedded(args.file), args.out_name, episode_ends=args.episode_ends,
+                                 env_id=args.env_id, overwrite=args.overwrite,
+                                 progress=lambda done, total: bars.update("import", done, total, unit="episode"))
+    print(describe_import(dataset_id, args.file))
     return 0

@@ -5,7 +5,6 @@ What it writes is :func:`rm_torchrl.report.write.write_report`'s; prints Table 1
 from __future__ import annotations
 
 import argparse
-import sys
 
 from rm_torchrl.errors import RMError
 
@@ -29,10 +28,6 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
-def build_parser() -> argparse.ArgumentParser:
-    return add_arguments(argparse.ArgumentParser(prog="rmrl report", description=__doc__.splitlines()[0]))
-
-
 def run(args) -> int:
     from functools import partial
 
@@ -48,15 +43,3 @@ def run(args) -> int:
     write_report(args.paths, args.out, args.dataset_from, args.decimals, args.reps, extra=gifs)
     return 0
 
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except RMError as err:
-        print(f"rmrl report: error: {err}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -404,3 +404,24 @@ def _sha256(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def describe_import(dataset_id: str, source: str) -> str:
+    """What ``rmrl import-d4rl`` wrote from ``source`` into ``dataset_id``, where it is, and how to read it."""
+    import minari
+    from minari.storage import get_dataset_path
+
+    dataset = minari.load_dataset(dataset_id)
+    record = dataset.storage.metadata.get(IMPORT_METADATA_KEY, {})
+    env = f", env {dataset.env_spec.id}" if dataset.env_spec is not None else ""
+    lines = [f"imported {source}: {dataset.total_episodes:,} episodes, {dataset.total_steps:,} transitions "
+             f"(episodes ended by {record.get('episode_ends', '?')}{env})"]
+    skipped = record.get("skipped_single_step_episodes", 0)
+    if skipped:
+        lines.append(f"skipped {skipped} single-step episode(s): they hold no transition")
+    lines.append(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
+    if dataset.total_episodes < 2:
+        lines.append("note: TorchRL's Minari reader (rmrl refine --dataset) needs at least 2 episodes")
+    else:
+        lines.append(f"read it with: rmrl refine --dataset {dataset_id} --events ... --out ...")
+    return "\n".join(lines)

@@ -41,5 +41,35 @@ GENERATORS = {
     ),
 }
 
+
+
+def describe_generated(dataset_id: str, name: str) -> str:
+    """What ``rmrl generate NAME`` recorded into ``dataset_id``, where it is, and how to refine it."""
+    import minari
+    from minari.storage import get_dataset_path
+
+    from rm_torchrl.generate.cloned import CLONED
+
+    dataset = minari.load_dataset(dataset_id)
+    record = dataset.storage.metadata.get(GENERATE_METADATA_KEY, {})
+    if name in CLONED:
+        mix = record.get("mix", {})
+        lines = [f"generated {name}: {dataset.total_steps:,} transitions in {dataset.total_episodes:,} episodes "
+                 f"({mix.get('demo_episodes', '?')} demo episodes, {mix.get('demo_transitions', '?')} transitions; "
+                 f"{mix.get('rollout_episodes', '?')} BC rollouts, {mix.get('rollout_transitions', '?')} transitions)"]
+        events = name.split("-")[0]
+    else:
+        length = record.get("episode_length", {})
+        lines = [f"generated {dataset.total_episodes:,} episodes ({record.get('keep', 'kept')}; "
+                 f"{dataset.total_steps:,} transitions) of {name} in {record.get('attempts', '?')} attempts; episode "
+                 f"length mean {length.get('mean', float('nan')):.1f}, min {length.get('min', '?')}, "
+                 f"max {length.get('max', '?')}"]
+        events = GENERATORS[name].events
+    lines.append(f"wrote Minari dataset {dataset_id} to {get_dataset_path(dataset_id)}")
+    if dataset.total_episodes >= 2 and events:
+        lines.append(f"refine it with: rmrl refine --dataset {dataset_id} --events {events} --out ...")
+    return "\n".join(lines)
+
+
 __all__ = ["GENERATORS", "GENERATE_METADATA_KEY", "Generator", "KitchenPlayController", "RelocateController", "collect",
-           "generate_dataset"]
+           "describe_generated", "generate_dataset"]
