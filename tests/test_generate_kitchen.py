@@ -143,3 +143,29 @@ def test_goal_counts_weigh_the_number_of_goal_tasks():
     assert all(len(set(controller.plan(rng)) & set(GOAL_TASKS)) == 2 for _ in range(100))
     settings = controller.settings()
     assert settings["goal_counts"] == [0.0, 1.0, 0.0] and settings["canonical_order"] == list(CANONICAL)
+
+
+def test_served_reports_every_step_of_the_play():
+    """``served`` (what benchmarks/diagnostics/kitchen_pace.py measures): the plan's tasks in order, each
+    segment's end once, the moves between skills named."""
+    from rm_torchrl.generate.record import attempt_seeds, make_env
+
+    gen = GENERATORS["kitchen-partial"]
+    env = make_env(gen.env_id, MAX_STEPS, gen.env_kwargs)
+    controller = KitchenPlayController(**gen.policy_kwargs)
+    env_seed, policy_seed = attempt_seeds(SEED, 1)
+    env.reset(seed=env_seed)
+    controller.reset(env, np.random.default_rng(policy_seed))
+    served = []
+    for _ in range(MAX_STEPS):
+        _, _, terminated, truncated, _ = env.step(controller.act(env))
+        served.append(controller.served)
+        if controller.finished(env) or terminated or truncated:
+            break
+    env.close()
+    skills = [s.skill for s in served]
+    assert [k for i, k in enumerate(skills) if i == 0 or k != skills[i - 1]] == [*controller.tasks, "end"]
+    assert all(s.segment is not None and s.ended in ("", "reached", "timed_out") for s in served)
+    ended = [id(s.segment) for s in served if s.ended]
+    assert len(ended) == len(set(ended))
+    assert {s.segment.role for s in served} == {"", "retreat", "home"}

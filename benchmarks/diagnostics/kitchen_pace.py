@@ -1,10 +1,11 @@
-"""Where the scripted kitchen play spends its steps: per skill, per segment kind, reached or timed out.
+"""Where the scripted kitchen play spends its steps: per skill, per segment kind, how each segment ended.
 
 The generated kitchen play is about twice as slow as D4RL's human play (refined kitchen-partial's
 four groups have median sub-trajectories of about 420 steps in all, the evaluation horizon is 280).
 This runs the ``kitchen-partial`` generator's controller on episodes that plan all four goal tasks
 and prints JSON: steps per completed task, the steps between completions, and the share of steps in
-segments that reached their goal, timed out, or hold by design (grasps, pauses, knob turns).
+segments that reached their goal, timed out, were dropped because their task got done, or hold by design
+(grasps, pauses, knob turns). It reads what the controller reports of each step (``served``).
 
     python benchmarks/diagnostics/kitchen_pace.py --episodes 12 [--set speed_scale=1.5]
 """
@@ -22,53 +23,42 @@ from rm_torchrl.generate.record import attempt_seeds, make_env
 
 
 class Traced(KitchenPlayController):
-    """The controller, counting each step under the segment it served and how that segment ended."""
+    """The controller, counting each step under the segment it served and how that segment ended (``served``)."""
 
     def reset(self, env, rng):
         super().reset(env, rng)
         self.trace: list[tuple[str, str]] = []  # (skill, segment kind) per step
-        self.ends = Counter()
-        self._skill = "start"
-        self._index = 0
-        self.segments = Counter()  # (skill, segment index, kind, how it ended) -> steps
+        self.ends = Counter()  # how the move segments ended: reached, timed_out, dropped (their task got done)
+        self.segments = Counter()  # (skill, segment index, how it ended) -> steps; with "n" appended: how many
         self.labels = Counter()  # steps in: retreat, home, work (until the task is done), other moves, holds
-        self._steps = 0
-
-    def _retreat(self, last):
-        seg = super()._retreat(last)
-        seg.label = "retreat"
-        return seg
-
-    def _home(self, grip=1.0):
-        seg = super()._home(grip)
-        seg.label = "home"
-        return seg
-
-    def _next_skill(self):
-        task = self._queue[0] if self._queue else "end"
-        super()._next_skill()
-        self._skill, self._index = task, 0
+        self.open: list | None = None  # [skill, index, segment, steps] of the segment being served
+        self.last: tuple[str, int] = ("", -1)  # skill and index of the last segment opened
 
     def act(self, env):
-        seg = self._segments[0] if self._segments else None
-        before = len(self._segments)
         action = super().act(env)
-        seg = seg or (self._segments[0] if self._segments else None)
-        kind = "hold" if seg is not None and seg.tol == 0.0 else "move"
-        self.trace.append((self._skill, kind))
-        label = getattr(seg, "label", None) or ("work" if getattr(seg, "until_done", False) else kind)
-        self.labels[label] += 1
-        self._steps += 1
-        if seg is not None and len(self._segments) < before:
-            end = "hold"
-            if kind == "move":
-                end = "reached" if np.linalg.norm(seg.pos - self._u.data.site_xpos[self._site]) < seg.tol else "timed_out"
-                self.ends[end] += 1
-            self.segments[(self._skill, self._index, end)] += self._steps
-            self.segments[(self._skill, self._index, end, "n")] += 1
-            self._index += 1
-            self._steps = 0
+        seg, skill = self.served.segment, self.served.skill
+        if self.open is not None and self.open[2] is not seg:
+            self.close("dropped")
+        if seg is None:
+            return action
+        if self.open is None:
+            index = self.last[1] + 1 if self.last[0] == skill else 0
+            self.open, self.last = [skill, index, seg, 0], (skill, index)
+        kind = "hold" if seg.tol == 0.0 else "move"
+        self.trace.append((skill, kind))
+        self.labels[seg.role or ("work" if seg.until_done else kind)] += 1
+        self.open[3] += 1
+        if self.served.ended:
+            self.close("hold" if kind == "hold" else self.served.ended)
         return action
+
+    def close(self, end: str) -> None:
+        skill, index, seg, steps = self.open
+        if seg.tol != 0.0:
+            self.ends[end] += 1
+        self.segments[(skill, index, end)] += steps
+        self.segments[(skill, index, end, "n")] += 1
+        self.open = None
 
 
 def main() -> int:

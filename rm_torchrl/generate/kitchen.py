@@ -104,6 +104,18 @@ class Segment:
     posture: float = 0.05  # gain of the null-space pull toward ``comfort``
     comfort: np.ndarray = field(default_factory=lambda: COMFORT)
     until_done: bool = False  # part of the skill's work: dropped once the task is completed, as a person stops
+    role: str = ""  # "retreat" or "home" for the moves between skills; empty for a skill's own segments
+
+
+@dataclass
+class Served:
+    """What one ``act`` did (``KitchenPlayController.served``), for measuring where the play spends its steps."""
+
+    skill: str  # the task whose segments are playing ("end" once the plan is played out)
+    segment: Segment | None
+    #: "reached" (within its ``tol``) or "timed_out" when the segment ended at this step, "" while it goes on; a
+    #: skill's work dropped because its task got done ends without either (the next step serves another segment)
+    ended: str = ""
 
 
 def completed(qpos: np.ndarray) -> list[str]:
@@ -226,6 +238,8 @@ class KitchenPlayController:
         self._held = 0
         self._idle = 0
         self._over = False
+        self.skill = "start"  # the task being played, "end" after the plan (``served``)
+        self.served: Served | None = None  # what the last ``act`` did
 
     # ------------------------------------------------------------------ per step
 
@@ -242,17 +256,20 @@ class KitchenPlayController:
         if not self._segments:
             self._next_skill()
         seg = self._segments[0] if self._segments else None
+        self.served = Served(self.skill, seg)
         if seg is not None:
             self._grip, self._rot, self._posture, self._comfort = seg.grip, seg.rot, seg.posture, seg.comfort
             step = seg.pos - self._waypoint
             dist = float(np.linalg.norm(step))
             self._waypoint = self._waypoint + (step if dist <= seg.speed else step * seg.speed / dist)
             self._seg_steps += 1
-            if np.linalg.norm(seg.pos - p) < seg.tol or self._seg_steps >= seg.steps:
+            reached = np.linalg.norm(seg.pos - p) < seg.tol
+            if reached or self._seg_steps >= seg.steps:
                 self._held += 1
                 if self._held > seg.hold:
                     self._segments.pop(0)
                     self._seg_steps = self._held = 0
+                    self.served.ended = "reached" if reached else "timed_out"
         return self._action(d)
 
     def finished(self, env) -> bool:
@@ -275,12 +292,14 @@ class KitchenPlayController:
 
     def _home(self, grip: float = OPEN) -> Segment:
         """Back through the middle of the kitchen: a way point passed within 0.12 m, not a pose to settle in."""
-        return Segment(HOME + self._rng.normal(0.0, 0.02, 3), FORWARD, grip, self.travel * self.speed, tol=0.12, steps=45)
+        return Segment(HOME + self._rng.normal(0.0, 0.02, 3), FORWARD, grip, self.travel * self.speed, tol=0.12, steps=45,
+                       role="home")
 
     def _next_skill(self) -> None:
         """Queue the next task's segments (after a possible pause or detour), or end the episode."""
         rng = self._rng
         if not self._queue:
+            self.skill = "end"
             if self._idle == 0:
                 self._idle = int(rng.integers(5, 20))
                 self._segments = [Segment(HOME, FORWARD, OPEN, self.speed, tol=0.0, steps=self._idle)]
@@ -297,7 +316,7 @@ class KitchenPlayController:
             self.style["detours"] += 1
             lead.append(Segment(HOME + rng.uniform([-0.15, -0.1, -0.1], [0.15, 0.05, 0.1]), FORWARD, OPEN,
                                 self.travel * self.speed, tol=0.04, steps=40))
-        task = self._task = self._queue.pop(0)
+        task = self._task = self.skill = self._queue.pop(0)
         segments = getattr(self, "_skill_" + task.replace(" ", "_"))()
         if rng.random() < self.fail:  # abandoned half way: let go and move on
             self.style["failed"].append(task)
@@ -306,7 +325,7 @@ class KitchenPlayController:
 
     def _retreat(self, last: Segment) -> Segment:
         """Open the hand and back off 0.1 m along the approach axis."""
-        return Segment(last.pos - 0.1 * last.rot[:, 2], last.rot, OPEN, self.speed, tol=0.05, steps=25)
+        return Segment(last.pos - 0.1 * last.rot[:, 2], last.rot, OPEN, self.speed, tol=0.05, steps=25, role="retreat")
 
     def _approach(self, target: np.ndarray, rot: np.ndarray, back: float = 0.10) -> list[Segment]:
         """Pre-grasp 0.10 m back along the approach axis, then in to ``target`` with the hand open."""
