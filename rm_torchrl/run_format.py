@@ -59,8 +59,8 @@ def stage_rows(reports) -> list[str]:
 #: the sub-trajectories the splice abandons brought back: beyond the paper).
 REFINE = ("none", "paper", "reuse")
 #: ``method.hparams``: whose settings the values are: the algorithm's authors' published ones, or ours'
-#: (``recipes/method/ours.yaml`` with the per-dataset values of ``tuned.ours``, chosen as
-#: ``benchmarks/results/choices.json`` records).
+#: (``recipes/method/ours.yaml`` with the per-dataset values of ``tuned.ours``, each chosen as the tuning record
+#: of ``rm_torchrl.report.choices`` says).
 HPARAMS = ("published", "ours")
 #: The method options that are a preset (algorithm, settings, refinement) rather than an algorithm.
 PRESETS = {("iql", "ours", "paper"): "ours", ("iql", "ours", "reuse"): "ours-reuse"}

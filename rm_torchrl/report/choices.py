@@ -1,8 +1,8 @@
 """The tuning record: which (dataset, seed) pairs a choice of settings looked at.
 
-``benchmarks/results/choices.json`` lists every setting chosen by looking at evaluations (``benchmarks/PROTOCOL.md``):
-a JSON list of objects with ``what``, ``options``, ``dataset``, ``seeds``, ``steps``, ``criterion`` and
-``chosen``. A reported number never comes from a run whose (dataset, seed) a choice used, whatever its method:
+A choices file lists every setting chosen by looking at evaluations: a JSON list of objects with ``what``,
+``options``, ``dataset``, ``seeds``, ``steps``, ``criterion`` and ``chosen``. A reported number never comes from
+a run whose (dataset, seed) a choice used, whatever its method:
 :func:`leave_out_chosen` splits such runs off, each with the choice that used it. The dataset is the run's
 ``data.name`` (:func:`~rm_torchrl.report.runs.dataset_label`).
 

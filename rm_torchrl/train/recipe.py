@@ -61,8 +61,8 @@ OmegaConf.register_new_resolver("run_label", run_label, replace=True)
 def scaled_to_budget(rate, reference_steps, steps) -> float:
     """``rate`` for a run of up to ``reference_steps`` updates, ``rate * reference_steps / steps`` for a longer
     one: the summed learning rate over the run stays the reference run's (``${scaled_to_budget:3e-4,50000,
-    ${trainer.steps}}``; benchmarks/results/door-human-v0-500k: ours' actor memorises its few thousand
-    refined transitions when 500k updates run at the 50k budget's rate)."""
+    ${trainer.steps}}``: ours' actor memorises its few thousand refined transitions when 500k updates run at
+    the 50k budget's rate)."""
     try:
         rate, reference_steps, steps = float(rate), int(reference_steps), int(steps)
     except (TypeError, ValueError):
