@@ -6,7 +6,7 @@ import re
 import pytest
 import torch
 
-from rm_torchrl import reference as ref
+import reference as ref
 from helpers import make_file
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.shortest import check_alpha

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rm_torchrl import reference as ref
+import reference as ref
 from rm_torchrl.refine import (
     CounterfactualRelabel,
     EventOrder,

@@ -6,7 +6,7 @@ import random
 import pytest
 import torch
 
-from rm_torchrl import reference as ref
+import reference as ref
 from rm_torchrl.data.synthetic import make_door_like
 from rm_torchrl.refine import make_refine_pipeline, run_pipeline
 

@@ -1,6 +1,6 @@
 """Randomised comparison of every vectorised refinement stage with the per-transition oracle.
 
-Datasets come from ``rm_torchrl.reference.random_episodes`` (seeded): n = 1..5 events, 1..30 episodes of
+Datasets come from ``reference.random_episodes`` (tests/reference.py) (seeded): n = 1..5 events, 1..30 episodes of
 1..20 transitions (some datasets with only length-1 / length-2 episodes), events that already hold
 at s_0, flicker on and off, and several events switching in one transition; alpha in
 {0.1, 0.5, 0.9, 1.0}; random order constraints (by name or by id, sometimes contradictory); with and
@@ -16,7 +16,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from rm_torchrl import reference as ref
+import reference as ref
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine import (
     CounterfactualRelabel,

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from rm_torchrl import reference as ref
+import reference as ref
 from rm_torchrl.errors import RMError
 from rm_torchrl.rm import EventOrderedRM
 

@@ -2,8 +2,8 @@
 
 Nothing here is vectorised: it loops over episodes and transitions with Python tuples, lists and
 sets, following Definition 3.1, Algorithm 1, section 3.3, section 3.4 and Algorithm 2 line by line.
-It is the oracle the tests compare every stage of the vectorised ``rm_torchrl.refine`` pipeline with, and
-the slow baseline of ``benchmarks/speed/refine_throughput.py``: the library's, so neither reaches into the other.
+It is the oracle the tests compare every stage of the vectorised ``rm_torchrl.refine`` pipeline with (it lives
+with the tests, not in the package), and the slow baseline ``benchmarks/speed/refine_throughput.py`` loads by path.
 
 Conventions (the same as ``rm_torchrl``):
 
