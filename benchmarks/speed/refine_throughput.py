@@ -34,11 +34,12 @@ from rm_torchrl.refine import refine  # noqa: E402
 def _reference_refine():
     """``reference_refine`` of the tests' per-transition oracle, loaded from its file (tests/ is not a package)."""
     import importlib.util
+    import sys
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[2] / "tests" / "reference.py"
     spec = importlib.util.spec_from_file_location("rmrl_reference", path)
-    module = importlib.util.module_from_spec(spec)
+    module = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # its dataclasses look themselves up
     spec.loader.exec_module(module)
     return module.reference_refine
 
