@@ -130,3 +130,17 @@ def collect(runs, results: Path) -> list[dict]:
                         "final_events": float(run.evals["events_mean"][-1]),
                         "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
     return summary
+
+
+def run_study(main, name: str) -> None:
+    """``main()`` as a command: its exit status; a signal to its runs exits 130/143 saying what they saved (the
+    runs checkpointed), bad input (a broken run directory, ``--reps 0``) is one line, never a traceback."""
+    from rm_torchrl.errors import RMError
+    from rm_torchrl.launch import exit_status
+
+    try:
+        raise SystemExit(main())
+    except KeyboardInterrupt as err:
+        raise SystemExit(exit_status(err, name))
+    except RMError as err:
+        raise SystemExit(f"{name}: error: {err}")

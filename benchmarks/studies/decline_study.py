@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, ROOT, mean_std
+from common import RESULTS, ROOT, mean_std, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.events.spec import load_event_spec
@@ -221,9 +221,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    try:
-        raise SystemExit(main())
-    except KeyboardInterrupt as err:  # a signal to run_grid: its runs checkpointed and say where
-        from rm_torchrl.launch import exit_status
-
-        raise SystemExit(exit_status(err, Path(__file__).name))
+    run_study(main, Path(__file__).name)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import CHOICES, LABELS, PAPER, RESULTS, collect, gather, mean_std, pending
+from common import CHOICES, LABELS, PAPER, RESULTS, collect, gather, mean_std, pending, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
@@ -318,4 +318,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_study(main, Path(__file__).name)

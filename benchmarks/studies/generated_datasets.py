@@ -32,7 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import GENERATED, PAPER_T2, rmrl
+from common import GENERATED, PAPER_T2, rmrl, run_study
 
 #: the issue's bar: every stage of the three profiled rows within 25% of the paper's Table 2
 TOLERANCE = 0.25
@@ -150,4 +150,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_study(main, Path(__file__).name)

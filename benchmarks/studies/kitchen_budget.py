@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS
+from common import RESULTS, run_study
 
 from rm_torchrl.report.runs import read_eval_csv
 
@@ -41,4 +41,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_study(main, Path(__file__).name)

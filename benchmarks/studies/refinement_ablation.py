@@ -32,10 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common import CHOICES, RESULTS, ROOT, mean_std
+from common import CHOICES, RESULTS, ROOT, mean_std, run_study
 
 from rm_torchrl.launch import run_grid
-from rm_torchrl.errors import RMError
 from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves
@@ -230,7 +229,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    try:
-        raise SystemExit(main())
-    except RMError as err:
-        raise SystemExit(f"{Path(__file__).name}: error: {err}")
+    run_study(main, Path(__file__).name)

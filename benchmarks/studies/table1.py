@@ -29,11 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
+from common import (run_study, CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
                     pending, rmrl, row)
 
 from rm_torchrl.launch import run_grid
-from rm_torchrl.errors import RMError
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile
 from rm_torchrl.report.runs import group_runs
@@ -283,11 +282,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    try:
-        raise SystemExit(main())
-    except KeyboardInterrupt as err:  # a signal to run_grid: its runs checkpointed and say where
-        from rm_torchrl.launch import exit_status
-
-        raise SystemExit(exit_status(err, Path(__file__).name))
-    except RMError as err:  # bad input (--reps 0, a broken run directory): one line, no traceback
-        raise SystemExit(f"{Path(__file__).name}: error: {err}")
+    run_study(main, Path(__file__).name)
