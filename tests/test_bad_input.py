@@ -297,6 +297,7 @@ def test_a_three_event_constraint_cycle_is_named():
     assert _cycle([(1, 2), (2, 3), (1, 3)]) == []
 
 
+@pytest.mark.slow
 def test_many_events_with_sparse_groups_fit_and_dense_ones_are_refused_with_the_cap():
     """25 events as a dataset shows them (each followed by a few others): solved exactly. 17 events with
     every pair seen: refused, naming the cap, instead of a MemoryError after minutes."""

@@ -353,6 +353,7 @@ def test_policy_module(layout):
     torch.testing.assert_close(chosen, acts[torch.arange(B), q1.argmax(1)])
 
 
+@pytest.mark.slow
 def test_training_on_linear_behaviour_policy():
     torch.manual_seed(0)
     n, obs_dim = 512, 5

@@ -323,6 +323,7 @@ def _demo(cwd: Path, *argv: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow
 def test_demo_keeps_the_users_runs(tmp_path):
     """``rmrl demo --out .`` in a project folder with no ../shared beside it (issue 19, case 2): it trains
     on the packaged file, composed as ``rmrl train dataset=door-human-v0 method=...`` does, and the
@@ -393,6 +394,7 @@ def test_two_demos_into_one_folder_at_once_both_report_the_same_runs(tmp_path):
         assert len(evals) == 3, evals  # the header and 2 evaluations: trained once
 
 
+@pytest.mark.slow
 def test_demo_on_another_file_names_it(tmp_path):
     """``--dataset FILE``: the runs train on FILE, and the tables name the dataset after it, not door-human-v0."""
     data = tmp_path / "my-door.hdf5"
@@ -428,6 +430,7 @@ def test_version(capsys):
 
 
 @pytest.mark.parametrize("backend", ["bogus", "osmesa"])
+@pytest.mark.slow
 def test_a_mujoco_gl_that_cannot_load_is_one_line(tmp_path, backend):
     """A fresh process: MuJoCo reads MUJOCO_GL once, at its first import (osmesa: no OSMesa library here)."""
     env = {k: v for k, v in os.environ.items() if k != "PYOPENGL_PLATFORM"}  # MuJoCo derives it from MUJOCO_GL
@@ -564,6 +567,7 @@ def test_dataset_where_no_event_happens(capsys, tmp_path, no_events):
 # The console script
 # --------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_console_script_error_exit_code(tmp_path, tiny):
     exe = Path(sys.executable).parent / "rmrl"
     exe = str(exe) if exe.exists() else shutil.which("rmrl")

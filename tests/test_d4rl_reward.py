@@ -26,6 +26,7 @@ def transitions(next_obs: np.ndarray, reward: np.ndarray) -> TensorDict:
 
 
 @pytest.mark.skipif(not (D4RL / "door-human-v0.hdf5").is_file(), reason="needs ../shared/data/d4rl")
+@pytest.mark.slow
 def test_door_matches_the_stored_d4rl_rewards():
     """Replays stored transitions of door-human-v0 in AdroitHandDoor-v1 from their simulator states."""
     import h5py
@@ -163,6 +164,7 @@ print(float(env.rollout(2)["next", "reward"].sum()))
     (["door-human-v0", "39", "eval.env=AdroitHandDoor-v1", "+eval.env_kwargs.reward_type=sparse"], True),
     (["kitchen-partial", "59"], False),  # not an Adroit env: the notice is not about it
 ])
+@pytest.mark.slow
 def test_gymnasium_robotics_notice_is_silenced_only_where_the_reward_is_corrected(overrides, kept):
     """gymnasium-robotics 1.4.2 prints its notice once, on import, so each case is a fresh process."""
     import os

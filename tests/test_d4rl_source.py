@@ -489,6 +489,7 @@ def test_big_endian_float64_arrays_load_like_native_ones(tmp_path):
     assert (load_d4rl_hdf5(swapped) == load_d4rl_hdf5(native)).all()
 
 
+@pytest.mark.slow
 def test_values_beyond_float32_are_refused_by_refine_import_and_train(tmp_path, capsys, cache):
     bad = write_d4rl(tmp_path / "bad.hdf5", transitions=400)
     with h5py.File(bad, "r+") as f:

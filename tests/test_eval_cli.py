@@ -17,6 +17,8 @@ from rm_torchrl.train import load_recipe, train
 
 from helpers import error_line, make_recipe, write_d4rl
 
+pytestmark = pytest.mark.slow  # every test evaluates a run trained once per module
+
 SEED_MAX = 2 ** 32 - 1
 
 

@@ -118,6 +118,7 @@ def test_errors():
         format_event_table([])
 
 
+@pytest.mark.slow
 def test_door_human():
     from rm_torchrl.data.d4rl import load_d4rl_hdf5
     from rm_torchrl.refine.label import LabelRM
@@ -165,6 +166,7 @@ def test_timelines_show_what_refinement_keeps():
         assert ep.rm_level[-1] + ep.fires[-1].any() >= len(ep.rm_events) >= ep.rm_level[-1]
 
 
+@pytest.mark.slow
 def test_inspect_plot_writes_a_png(tmp_path, capsys):
     import h5py
     import numpy as np

@@ -81,6 +81,7 @@ def test_torchrl_reads_it_from_the_local_minari_cache(exported, refined):
         assert buffer.sample()["observation", "observation"].shape == (8, data["observation"].shape[-1])
 
 
+@pytest.mark.slow
 def test_training_on_the_export_is_training_on_the_refined_data(exported, source, tmp_path):
     """``rmrl train`` on the export (data.refine=paper) uses its RM states: the same run as refining the source,
     bit for bit."""

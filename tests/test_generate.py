@@ -33,6 +33,7 @@ def observations(ds) -> list[np.ndarray]:
     return [ep.observations for ep in ds.iterate_episodes()]
 
 
+@pytest.mark.slow
 def test_every_kept_episode_succeeds(dataset):
     assert dataset.total_episodes == 3
     for ep in dataset.iterate_episodes():
@@ -44,6 +45,7 @@ def test_every_kept_episode_succeeds(dataset):
         assert np.abs(ep.actions).max() <= 1.0
 
 
+@pytest.mark.slow
 def test_metadata(dataset):
     record = dataset.storage.metadata[GENERATE_METADATA_KEY]
     assert record["generator"] == "relocate-human" and record["seed"] == SEED and record["max_steps"] == 800
@@ -55,6 +57,7 @@ def test_metadata(dataset):
     assert len({round(float(s["speed"]), 6) for s in styles}) == 3  # speed varies per episode
 
 
+@pytest.mark.slow
 def test_load_minari_and_refine_in_event_order(dataset):
     data = load_minari(NAME)
     assert data.batch_size[0] == dataset.total_steps
@@ -65,6 +68,7 @@ def test_load_minari_and_refine_in_event_order(dataset):
     assert refined.batch_size[0] > 0
 
 
+@pytest.mark.slow
 def test_same_seed_gives_the_same_episodes_with_two_workers(dataset, cache):
     name = "rmrl/relocate-workers-v0"
     assert generate_cli("relocate-human", "--out-name", name, "--episodes", "2", "--seed", str(SEED), "--workers", "2") == 0
@@ -94,6 +98,7 @@ class _Boom(RelocateController):
         return super().act(env)
 
 
+@pytest.mark.slow
 def test_failure_mid_run_leaves_nothing_and_keeps_the_old_dataset(dataset, cache):
     before = leftovers(cache)
     boom = Generator(name="boom", env_id="AdroitHandRelocate-v1", policy=_Boom)
@@ -122,6 +127,7 @@ def test_bad_name(cache, name):
         generate_cli("relocate-human", "--out-name", name, "--episodes", "1")
 
 
+@pytest.mark.slow
 def test_existing_dataset_needs_overwrite(dataset, cache, capsys):
     with pytest.raises(RMError, match="already exists.*--overwrite"):
         generate_cli("relocate-human", "--out-name", NAME, "--episodes", "1")

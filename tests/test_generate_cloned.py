@@ -36,6 +36,7 @@ def episode_metadata(ds) -> list[dict]:
     return list(ds.storage.get_episode_metadata(range(ds.total_episodes)))
 
 
+@pytest.mark.slow
 def test_half_demos_half_rollouts(door):
     assert door.total_steps == STEPS
     meta = episode_metadata(door)
@@ -58,6 +59,7 @@ def test_half_demos_half_rollouts(door):
         assert ep.observations.shape == (len(ep.actions) + 1, 39)
 
 
+@pytest.mark.slow
 def test_load_minari_and_refine(door):
     data = load_minari(NAME, download=False)
     assert data.batch_size[0] == STEPS
@@ -66,6 +68,7 @@ def test_load_minari_and_refine(door):
     assert refined.batch_size[0] > 0
 
 
+@pytest.mark.slow
 def test_same_seed_same_data_with_two_workers(door, cache):
     other = minari.load_dataset(generate_cloned("door-cloned", "rmrl/door-cloned-again-v0", workers=2, **KW))
     assert other.total_episodes == door.total_episodes
@@ -73,6 +76,7 @@ def test_same_seed_same_data_with_two_workers(door, cache):
         assert np.array_equal(a.observations, b.observations) and np.array_equal(a.actions, b.actions)
 
 
+@pytest.mark.slow
 def test_bc_is_deterministic_and_seed_matters():
     from rm_torchrl.data.d4rl import load_d4rl_hdf5
 
@@ -93,6 +97,7 @@ class _Boom(Exception):
     pass
 
 
+@pytest.mark.slow
 def test_failure_leaves_nothing_and_keeps_the_old_dataset(door, cache, monkeypatch):
     import rm_torchrl.generate.cloned as cloned
 
@@ -134,11 +139,13 @@ def test_bad_arguments(cache):
         generate_cloned("door-cloned", "rmrl/x-v0", steps=10, demos_source="/nonexistent/door.hdf5")
 
 
+@pytest.mark.slow
 def test_existing_dataset_needs_overwrite(door):
     with pytest.raises(RMError, match="already exists"):
         generate_cloned("door-cloned", NAME, **KW)
 
 
+@pytest.mark.slow
 def test_relocate_cloned_from_generated_relocate_human(cache):
     from rm_torchrl.generate import GENERATORS, generate_dataset
 

@@ -44,6 +44,7 @@ def done_tasks(episode) -> set[str]:
     return {t for t in TASKS if (np.linalg.norm(ach[t] - des[t], axis=-1) < THRESHOLD).any()}
 
 
+@pytest.mark.slow
 def test_partial_has_an_episode_with_all_four_goal_tasks(partial):
     done = [done_tasks(ep) for ep in partial.iterate_episodes()]
     assert any(set(GOAL_TASKS) <= d for d in done)
@@ -51,12 +52,14 @@ def test_partial_has_an_episode_with_all_four_goal_tasks(partial):
     assert [sorted(m["completed"]) for m in metadata] == [sorted(d) for d in done]
 
 
+@pytest.mark.slow
 def test_mixed_never_completes_all_four_goal_tasks(mixed):
     done = [done_tasks(ep) for ep in mixed.iterate_episodes()]
     assert len(done) == 3 and all(d for d in done)
     assert not any(set(GOAL_TASKS) <= d for d in done)
 
 
+@pytest.mark.slow
 def test_observations_have_the_d4rl_v2_layout(partial):
     for ep in partial.iterate_episodes():
         obs, n = ep.observations, len(ep.actions)
@@ -70,6 +73,7 @@ def test_observations_have_the_d4rl_v2_layout(partial):
         assert n <= MAX_STEPS and not ep.terminations.any()
 
 
+@pytest.mark.slow
 def test_metadata(partial, mixed):
     for ds, name in ((partial, "kitchen-partial"), (mixed, "kitchen-mixed")):
         record = ds.storage.metadata[GENERATE_METADATA_KEY]
@@ -85,6 +89,7 @@ def test_metadata(partial, mixed):
     assert all(len(s["plan"]) >= 1 and 0 < s["noise"] < 0.2 for s in styles)
 
 
+@pytest.mark.slow
 def test_refine_with_the_kitchen_events(partial):
     refined, report = refine(load_minari(PARTIAL), "kitchen", alpha=1.0)
     assert report.groups and all(n > 0 for n in report.groups.values())
@@ -92,6 +97,7 @@ def test_refine_with_the_kitchen_events(partial):
     assert refined.batch_size[0] > 0
 
 
+@pytest.mark.slow
 def test_same_seed_gives_the_same_episodes_with_two_workers(partial, cache):
     name = "rmrl/kitchen-workers-v0"
     generate_dataset(GENERATORS["kitchen-partial"], name, episodes=2, seed=SEED, workers=2, max_steps=MAX_STEPS)

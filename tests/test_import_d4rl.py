@@ -176,6 +176,7 @@ def test_env_id_is_stored_and_unfitting_spaces_fall_back_to_the_data(cache, tmp_
 
 # ---------------------------------------------------------------------------------------------- real files
 
+@pytest.mark.slow
 def test_real_door_human_round_trip_and_refine(cache):
     from rm_torchrl.refine import refine
 

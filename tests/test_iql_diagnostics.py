@@ -7,6 +7,8 @@ from tensordict import TensorDict
 
 from helpers import load_benchmark
 
+pytestmark = pytest.mark.slow  # loads a benchmark script
+
 
 @pytest.fixture(scope="module")
 def diagnostics():

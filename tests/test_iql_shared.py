@@ -60,6 +60,7 @@ def test_fast_path_only_for_known_networks():
 @pytest.mark.parametrize("actor", ["tanh_normal", "gaussian"])
 @pytest.mark.parametrize("generic", [False, True], ids=["fast", "generic"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.slow
 def test_same_losses_and_gradients(seed, generic, actor):
     ref, fast = build(IQLLoss, seed, generic, actor), build(SharedForwardIQLLoss, seed, generic, actor)
     fast.load_state_dict(ref.state_dict())

@@ -6,6 +6,8 @@ import pytest
 
 from helpers import load_benchmark
 
+pytestmark = pytest.mark.slow  # loads a benchmark script
+
 
 @pytest.fixture(scope="module")
 def chaining():

@@ -277,6 +277,7 @@ def test_rmrl_refine_reads_a_local_minari_dataset(minari_cache, tmp_path):
         assert report["groups"] == {"e0->microwave": 1}
 
 
+@pytest.mark.slow
 def test_training_on_a_dict_observation_dataset(minari_cache, tmp_path):
     """The trainer reads the policy vector from ('observation', 'observation') of dict datasets."""
     from rm_torchrl.train import load_recipe, train

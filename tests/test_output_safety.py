@@ -104,6 +104,7 @@ def test_overwrite_refuses_a_directory_without_the_marker(capsys, tmp_path, tiny
 
 
 @pytest.mark.parametrize("mine", ["notes.txt", "data/notes.txt", "data/next/plot.png", "figures/", "data/thesis@"])
+@pytest.mark.slow
 def test_overwrite_refuses_its_own_output_holding_a_users_file(capsys, tmp_path, tiny, mine):
     """``name/`` is an empty directory, ``name@`` a link to a file elsewhere."""
     out = tmp_path / "out"
@@ -199,6 +200,7 @@ def datasets(cache, tiny, tmp_path_factory):
 
 @pytest.mark.parametrize("writer,origin", [(w, o) for w in WRITERS for o in ("foreign", "import-d4rl", "refine")
                                            if w != o])  # its own kind: test_minari_overwrite_of_its_own_dataset
+@pytest.mark.slow
 def test_a_minari_writer_replaces_only_its_own_kind(capsys, tmp_path, cache, tiny, datasets, writer, origin):
     dataset_id = datasets[origin]
     before = snapshot(cache / dataset_id)
@@ -222,6 +224,7 @@ def test_refine_overwrite_is_for_the_out_directory_only(capsys, tmp_path, tiny, 
 
 
 @pytest.mark.parametrize("writer", ["refine", "import-d4rl"])
+@pytest.mark.slow
 def test_minari_overwrite_of_its_own_dataset(capsys, tmp_path, cache, tiny, writer):
     dataset_id = f"safety/own-{writer}-v0"
     first = WRITERS[writer](dataset_id, tiny, tmp_path)[:-1]
@@ -246,6 +249,7 @@ def test_minari_overwrite_of_its_own_dataset(capsys, tmp_path, cache, tiny, writ
 # Case 12: two refines racing for one new --out
 # --------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_racing_imports_into_one_new_name_one_wins_the_other_is_told(tmp_path, cache, tiny, big):
     sources = (tiny, big)
     for trial in range(4):
@@ -261,6 +265,7 @@ def test_racing_imports_into_one_new_name_one_wins_the_other_is_told(tmp_path, c
     assert not [p for p in leftovers(cache) if p.startswith(".rmrl-")]
 
 
+@pytest.mark.slow
 def test_racing_refines_into_one_new_out_one_wins_the_other_is_told(tmp_path, tiny):
     alphas = ("0.5", "1.0")
     for trial in range(8):
@@ -299,6 +304,7 @@ def small_disk(path: Path, size: str):
 
 
 @pytest.mark.parametrize("size", ["160k", "512k"])  # full as torch creates the files (160k), or as they fill
+@pytest.mark.slow
 def test_refine_on_a_full_disk(tmp_path, tiny, big, size):
     with small_disk(tmp_path / "disk", size) as disk:
         out = disk / "out"
@@ -316,6 +322,7 @@ def test_refine_on_a_full_disk(tmp_path, tiny, big, size):
 
 
 @pytest.mark.parametrize("command", ["import-d4rl", "refine"])
+@pytest.mark.slow
 def test_minari_writers_on_a_full_disk(tmp_path, tiny, big, command):
     with small_disk(tmp_path / "disk", "4m") as disk:
         cache = disk / "minari"
@@ -345,6 +352,7 @@ def fill(disk: Path) -> None:
 
 
 @pytest.mark.parametrize("command", ["refine", "import-d4rl", "generate"])
+@pytest.mark.slow
 def test_a_completely_full_disk(tmp_path, tiny, command):
     with small_disk(tmp_path / "disk", "256k") as disk:
         cache = disk / "minari"
@@ -394,6 +402,7 @@ def test_symlink_loop_and_dangling_link_are_named(capsys, tmp_path):
         assert message.startswith(str(source))
 
 
+@pytest.mark.slow
 def test_unforeseen_write_errors_are_one_line(tmp_path):
     """A name too long for the file system and a full stdout: one line each, exit 2, no traceback."""
     long_out = tmp_path / ("a" * 300)
@@ -478,6 +487,7 @@ def test_an_interrupt_while_the_previous_output_is_removed_says_the_new_one_is_w
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+@pytest.mark.slow
 def test_refine_and_train_work_with_stderr_closed(tmp_path, tiny):
     """`2>&-`: the messages have nowhere to go, the work is done all the same and says so by its exit status (a
     training's evaluation env loads glfw, whose loader runs a child process that writes to stderr)."""

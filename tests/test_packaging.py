@@ -33,6 +33,7 @@ def wheel(tmp_path_factory) -> Path:
     return built
 
 
+@pytest.mark.slow
 def test_wheel_ships_every_recipe(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     recipes = {p.relative_to(ROOT).as_posix() for p in (ROOT / "recipes").rglob("*.yaml")}
@@ -40,6 +41,7 @@ def test_wheel_ships_every_recipe(wheel):
     assert "rm_torchrl/data/d4rl_files/door-human-v0.hdf5" in names
 
 
+@pytest.mark.slow
 def test_installed_wheel_trains_from_any_directory(wheel, tmp_path):
     """The wheel installed into a folder of its own (the checkout nowhere on the path) lists its options,
     refines from a shipped recipe and trains ours on the embedded file, from an empty directory."""

@@ -18,6 +18,7 @@ def _same(a, b):
 
 
 @pytest.mark.parametrize("alpha", [0.3, 1.0])
+@pytest.mark.slow
 def test_door_like_driver_equals_compose(alpha):
     data = make_door_like(30_000, seed=3)
     _same(run_pipeline(make_refine_pipeline("door", alpha), data)[0], make_refine_pipeline("door", alpha)(data.copy()))

@@ -43,6 +43,7 @@ def test_the_readme_has_python_blocks():
 
 
 @pytest.mark.parametrize("line,code", BLOCKS, ids=[f"line{n}" for n, _ in BLOCKS])
+@pytest.mark.slow
 def test_readme_python_block_runs(tmp_path, line, code):
     env = {**os.environ, "MINARI_DATASETS_PATH": str(tmp_path / "minari"), "MUJOCO_GL": "egl",
            "OMP_NUM_THREADS": "1"}

@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from helpers import load_benchmark
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "readme_results.py"
@@ -140,6 +142,7 @@ def test_500k_and_ablation_blocks_leave_out_choice_seeds(tmp_path):
             "method.iql.temperature (ours).") in block
 
 
+@pytest.mark.slow
 def test_check_fails_on_a_stale_block_and_passes_on_a_fresh_one(tmp_path):
     results = small_results(tmp_path / "results")
     readme = tmp_path / "README.md"

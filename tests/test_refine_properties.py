@@ -194,8 +194,12 @@ def check_against_reference(case: Case, reuse: bool = False):
     assert report.subtrajectories == {"split": len(r["pieces"]), "refined": len(set(r["episode"]))}
 
 
+QUICK_SEEDS = 16  # the quick tier cross-checks these seeds against the reference; the slow one all 240
+
+
 @pytest.mark.parametrize("reuse", [False, True])
-@pytest.mark.parametrize("seed", range(240))
+@pytest.mark.parametrize("seed", [pytest.param(s, marks=() if s < QUICK_SEEDS else pytest.mark.slow)
+                                  for s in range(240)])
 def test_stages_match_reference(seed, reuse):
     check_against_reference(make_case(seed), reuse)
 
@@ -216,6 +220,7 @@ def datasets(draw):
 
 @settings(max_examples=150, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 @given(datasets(), st.booleans())
+@pytest.mark.slow
 def test_stages_match_reference_hypothesis(case, reuse):
     check_against_reference(case, reuse)
 
@@ -272,6 +277,7 @@ def test_random_cases_exercise_reuse():
         assert count >= 5, (key, seen)
 
 
+@pytest.mark.slow
 def test_reuse_is_off_by_default_and_the_paper_rows_stay_with_alpha_1():
     """Without reuse the pipeline is the paper's six stages; with it and alpha = 1, the rows not brought
     back are exactly the paper's, relabelled the same."""

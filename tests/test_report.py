@@ -134,6 +134,7 @@ def test_method_option_inverts_the_label(algorithm, hparams, refine):
 
 # --- Table 1 ---------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_table1_mean_std_and_bold_best(report_output):
     """Beside mean ± std, the IQM of the three seeds m - k, m, m + k (their mean) and its bootstrap CI [m - k, m + k]:
     all three resampled alike has chance 1/27, above the 2.5% each tail cuts."""
@@ -171,6 +172,7 @@ def test_bold_marks_every_tie_and_not_a_lonely_cell(tmp_path):
     assert rows["relocate-human"] == ["5.0 ± 0.0", "–", "–"]
 
 
+@pytest.mark.slow
 def test_results_md_header_and_figures(reported, report_output):
     _, out = reported
     text = (out / "results.md").read_text()
@@ -200,6 +202,7 @@ def test_cells_with_fewer_seeds_or_unfinished_runs_are_marked(tmp_path):
 
 # --- Table 2 ---------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_table2_rows(reported, report_output):
     _, out = reported
     rows = table_rows((out / "results.md").read_text())
@@ -223,6 +226,7 @@ def test_table2_range_when_refined_runs_disagree(tmp_path):
 REUSED_STAGES = dict(STAGES["kitchen-partial"], reused=98690, shorter=45000)
 
 
+@pytest.mark.slow
 def test_ours_reuse_is_its_own_method_and_table2_column(tmp_path, capsys):
     """Runs of ours-reuse beside ours (whose reports, like those of old runs, have no "reused" stage): Table 1
     gets an ours-reuse column after Ours, Table 2 a column of its own and the row Reused Sub-traj."""
@@ -250,6 +254,7 @@ def test_ours_reuse_is_its_own_method_and_table2_column(tmp_path, capsys):
     assert (out / "dataset_sizes.png").read_bytes()[:8] == PNG_MAGIC
 
 
+@pytest.mark.slow
 def test_table2_has_no_reused_row_without_the_stage(reported, report_output):
     _, out = reported
     assert "Reused Sub-traj." not in (out / "results.md").read_text()
@@ -266,12 +271,14 @@ def test_error_reused_stage_not_a_number(tmp_path):
 # --- figures and files -----------------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["learning_curves.png", "dataset_sizes.png"])
+@pytest.mark.slow
 def test_pngs_written(reported, report_output, name):
     _, out = reported
     data = (out / name).read_bytes()
     assert data[:8] == PNG_MAGIC and len(data) > 5000
 
 
+@pytest.mark.slow
 def test_no_temporary_files_left(reported, report_output):
     _, out = reported
     assert sorted(p.name for p in out.iterdir()) == ["aggregates.json", "dataset_sizes.png", "learning_curves.png",
@@ -443,6 +450,7 @@ def test_rmrl_report_subcommand(reported, tmp_path, capsys):
 
 # --- non-finite evaluations and single seeds (issue 19, case 13) ----------------------------
 
+@pytest.mark.slow
 def test_one_seed_shows_its_value_alone_never_plus_minus_zero(tmp_path, capsys):
     write_run(tmp_path, "door-human-bc", 0, "bc", False, "door", {6000: 2.0})
     write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 5.0})
@@ -495,6 +503,7 @@ def test_the_demo_summary_leaves_out_nan_seeds_and_claims_only_what_its_ci_shows
     assert "over 2 and 3 seeds" in text
 
 
+@pytest.mark.slow
 def test_a_users_folder_with_the_demos_runs_beside_theirs_reports_one_dataset(tmp_path):
     """`rmrl report runs/` over the demo's runs (runs/demo/runs/demo-*) and the user's: the demo's are door-human-v0
     runs (their recipe says so), never a dataset called "demo"; --dataset-from source reads the same."""

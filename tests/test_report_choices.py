@@ -82,6 +82,7 @@ def test_no_reported_run_shares_a_dataset_and_seed_with_a_choice(study):
         assert (dataset_label(recipe), row["seed"]) not in pairs, row["run"]
 
 
+@pytest.mark.slow
 def test_table1_report_leaves_a_non_finite_seed_out_of_every_column_by_name(tmp_path):
     """A NaN seed is named under "Runs left out"; mean ± std and the IQM use the same finite seeds; a cell whose
     every seed is NaN is left out instead of crashing the report."""

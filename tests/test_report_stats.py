@@ -86,6 +86,7 @@ def two_datasets(tmp_path_factory):
     return root, out, report(root, out)
 
 
+@pytest.mark.slow
 def test_aggregates_json_shape_and_recipe_method_names(two_datasets):
     _, _, agg = two_datasets
     assert KEYS <= set(agg) and agg["metric"] == "final_score" and agg["confidence"] == 0.95 and agg["reps"] == REPS
@@ -144,6 +145,7 @@ def test_probability_of_improvement_over_the_datasets_both_have(two_datasets):
 
 @pytest.mark.parametrize("ours, other, p", [([50, 60, 70], [1, 2, 3], 1.0), ([5, 5, 5], [5, 5, 5], 0.5),
                                             ([1, 2, 3], [4, 5, 6], 0.0)])
+@pytest.mark.slow
 def test_probability_of_improvement_dominance(tmp_path, ours, other, p):
     for dataset, score in (("door-human", "door"), ("kitchen-partial", "kitchen")):
         runs(tmp_path / "runs", dataset, "ours", ours, score=score)
@@ -169,6 +171,7 @@ def test_same_runs_same_cis_and_the_global_generator_is_left_alone(two_datasets)
     assert json.loads(json.dumps(again.to_json())) == agg
 
 
+@pytest.mark.slow
 def test_reps_option(tmp_path, capsys):
     runs(tmp_path / "runs", "door-human", "ours", [1, 2, 3])
     assert report(tmp_path / "runs", tmp_path / "out", "--reps", "50")["reps"] == 50
@@ -212,6 +215,7 @@ def test_demo_accepts_the_files_its_report_writes(tmp_path):
     check_report_dir(tmp_path)
 
 
+@pytest.mark.slow
 def test_table1_benchmark_report(tmp_path):
     """``benchmarks/studies/table1.py report`` on its own layout: the IQM column, the aggregate section and its files.
     Runs on a seed a choice of settings used, and BC runs from before CORL's BC (no method.bc: the Gaussian
@@ -265,6 +269,7 @@ def door_500k_report(out: Path, results: Path) -> None:
     assert done.returncode == 0, done.stderr
 
 
+@pytest.mark.slow
 def test_door_500k_benchmark_report(tmp_path):
     """``benchmarks/studies/door_500k.py report``: per-method table with IQM, best, last five, the hold check;
     unfinished runs out."""
@@ -291,6 +296,7 @@ def test_door_500k_benchmark_report(tmp_path):
     assert not (results / "arms.md").exists()  # no fix candidate has run
 
 
+@pytest.mark.slow
 def test_door_500k_report_of_fix_candidates(tmp_path):
     """Arms (ours with ARMS' overrides) go to ``arms.md`` beside ours' default runs, also when stopped early, and
     stay out of the main table."""
@@ -342,6 +348,7 @@ def arm_run(results: Path, arm: str, overrides: list[str], every: int = 5_000, s
     return run
 
 
+@pytest.mark.slow
 def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     """``adopt``: the lr arm (today's default) becomes ours' seed-0 run, evaluations kept at every 10k; an arm that
     is not the default, one stopped early, or a recipe lacking a setting is refused in one line; a seed ours has

@@ -286,6 +286,7 @@ def scripted_worker(schedule):
     return TransformedEnv(GymWrapper(ScriptedEnv(schedule)), RMEnvTransform(ABC))
 
 
+@pytest.mark.slow
 def test_parallel_env():
     # fork starts the workers in a second; spawn (torchrl's default) re-imports torch in each, ~15 s
     method = "fork" if "fork" in mp.get_all_start_methods() else None

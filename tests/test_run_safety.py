@@ -24,6 +24,8 @@ from rm_torchrl.train import load_recipe, train
 
 from helpers import alive, make_recipe, refused_by_train_refine_and_import, signal_while_training, write_d4rl
 
+pytestmark = pytest.mark.slow  # runs trained, signalled, resumed, on full disks
+
 
 def spawn(*argv: str) -> subprocess.Popen:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
