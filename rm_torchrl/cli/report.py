@@ -37,7 +37,7 @@ def run(args) -> int:
     if args.gifs:
         if args.gif_steps < 1:
             raise RMError(f"--gif-steps must be positive, got {args.gif_steps}")
-        from rm_torchrl.train.video import policy_gifs
+        from rm_torchrl.train.policy import policy_gifs
 
         gifs = partial(policy_gifs, steps=args.gif_steps)
     write_report(args.paths, args.out, args.dataset_from, args.decimals, args.reps, extra=gifs)

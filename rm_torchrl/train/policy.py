@@ -123,3 +123,16 @@ def load_policy(run_dir, device: str = "cpu", env: str | None = None) -> LoadedP
     return LoadedPolicy(method.policy,
                         lambda render=None, num_envs=None: make_eval_env(recipe, inputs, target, render, num_envs), recipe,
                         int(state["step"]), inputs, target)
+
+
+def policy_gifs(runs, out: Path, steps: int) -> str:
+    """A GIF of one episode of each run's last checkpoint in ``out/gifs``, and the Markdown that shows them."""
+    (out / "gifs").mkdir(exist_ok=True)
+    lines = ["", "## Final policies", ""]
+    for run in sorted(runs, key=lambda r: r.path.name):
+        loaded = load_policy(run.path)
+        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15,
+                           max_steps=min(steps, loaded.recipe.eval.max_steps))
+        lines.append(f"**{run.path.name}** ({run.method}, step {loaded.step}): ![{run.path.name}](gifs/{gif.name})")
+        lines.append("")
+    return "\n".join(lines) + "\n"

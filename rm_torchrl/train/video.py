@@ -113,18 +113,3 @@ def write_video(frames: list[np.ndarray], path, fps: int = 20) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
-
-
-def policy_gifs(runs, out: Path, steps: int) -> str:
-    """A GIF of one episode of each run's last checkpoint in ``out/gifs``, and the Markdown that shows them."""
-    from rm_torchrl.train.policy import load_policy
-
-    (out / "gifs").mkdir(exist_ok=True)
-    lines = ["", "## Final policies", ""]
-    for run in sorted(runs, key=lambda r: r.path.name):
-        loaded = load_policy(run.path)
-        gif = loaded.video(out / "gifs" / f"{run.path.name}.gif", episodes=1, size=(240, 240), fps=15,
-                           max_steps=min(steps, loaded.recipe.eval.max_steps))
-        lines.append(f"**{run.path.name}** ({run.method}, step {loaded.step}): ![{run.path.name}](gifs/{gif.name})")
-        lines.append("")
-    return "\n".join(lines) + "\n"
