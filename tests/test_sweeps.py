@@ -81,6 +81,7 @@ def steps_of(run_dir: Path) -> int:
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("data", DATASETS)
+@pytest.mark.slow
 def test_every_dataset_composes_with_every_method(data, method):
     """A method option is an algorithm (published settings, raw data) or a preset of the three; the run is named
     after the option; the resolved recipe holds the algorithm's own section only, and no tuned values."""
@@ -103,6 +104,7 @@ def test_the_method_options_are_the_algorithms_and_the_presets():
 
 @pytest.mark.parametrize("refine", REFINE)
 @pytest.mark.parametrize("algorithm", sorted(METHOD_SECTIONS))
+@pytest.mark.slow
 def test_every_algorithm_composes_with_every_data_treatment(algorithm, refine):
     """method=ALGORITHM data.refine=<any>: the algorithm's published settings on that data, named for what differs
     from the option (door-human-v0-bc-published-paper); only data.refine and the name change."""
@@ -119,6 +121,7 @@ OURS_OWN = set(flat({k: v for k, v in yaml.safe_load((RECIPES / "method" / "ours
 
 
 @pytest.mark.parametrize("data", ["door-human-v0", "kitchen-partial", "rmrl-relocate-human"])
+@pytest.mark.slow
 def test_ours_is_iql_with_ours_settings_on_the_refined_data(data):
     """method=ours is method=iql with the values ours.yaml sets (the dataset's tuned ones included) and
     data.refine=paper: the same recipe apart from method.hparams and the name."""
@@ -135,6 +138,7 @@ def test_ours_is_iql_with_ours_settings_on_the_refined_data(data):
 
 
 @pytest.mark.parametrize("data", ["door-human-v0", "kitchen-partial"])
+@pytest.mark.slow
 def test_ours_on_the_raw_data_keeps_ours_settings_under_its_own_name(data):
     """method=ours data.refine=none: IQL with ours' settings on the raw data (the refinement's control),
     <data>-iql-ours-none, without the RM encoding; ours-reuse with data.refine=none is the same run."""
@@ -145,6 +149,7 @@ def test_ours_on_the_raw_data_keeps_ours_settings_under_its_own_name(data):
         assert raw.to_dict() == {**ours, "name": f"{data}-iql-ours-none", "data": {**ours["data"], "refine": "none"}}
 
 
+@pytest.mark.slow
 def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp_path):
     named = load_recipe(RECIPES / "door-human-v0-ours.yaml").to_dict()
     assert named == load_recipe(None, ["dataset=door-human-v0", "method=ours"]).to_dict()
@@ -163,6 +168,7 @@ OURS_TEMPERATURE = yaml.safe_load((RECIPES / "method" / "ours.yaml").read_text()
 
 @pytest.mark.parametrize("method", ["ours", "ours-reuse"])
 @pytest.mark.parametrize("data", sorted(STUDIED))
+@pytest.mark.slow
 def test_studied_datasets_give_ours_their_temperature(data, method):
     """A dataset option's tuned.ours.temperature (its own or its defaults', as rmrl-* inherit) is a temperature
     study's choice: ours and ours-reuse take it, also on the raw data; the command line still wins."""
@@ -173,6 +179,7 @@ def test_studied_datasets_give_ours_their_temperature(data, method):
 
 
 @pytest.mark.parametrize("data", sorted(set(DATASETS) - STUDIED))
+@pytest.mark.slow
 def test_unstudied_datasets_give_ours_its_own_temperature(data):
     fallback = float(OURS_TEMPERATURE.rstrip("}").rpartition(",")[2])
     assert OURS_TEMPERATURE.startswith("${oc.select:tuned.ours.temperature,")
@@ -181,6 +188,7 @@ def test_unstudied_datasets_give_ours_its_own_temperature(data):
 
 
 @pytest.mark.parametrize("data", DATASETS)
+@pytest.mark.slow
 def test_ours_reuse_is_ours_with_the_reuse_stage(data):
     """The same recipe as ours (the same algorithm and settings) but for data.refine and the run's name."""
     ours = load_recipe(None, [f"dataset={data}", "method=ours"]).to_dict()
@@ -199,6 +207,7 @@ OURS_RATE, OURS_REFERENCE = float(_SCALED.group(1)), int(_SCALED.group(2))
 
 
 @pytest.mark.parametrize("fraction", [0.02, 1.0, 2.0, 10.0])
+@pytest.mark.slow
 def test_ours_actor_rate_keeps_the_reference_budgets_sum(fraction):
     """Up to the reference budget ours' actor runs at its rate; longer runs get rate * reference / steps, so the
     summed rate stays the reference run's, and the resolved recipe holds the number. The baselines keep their
@@ -222,6 +231,7 @@ def test_a_bad_budget_scaled_rate_is_a_one_line_error():
         scaled_to_budget("fast", 50_000, 10)
 
 
+@pytest.mark.slow
 def test_a_datasets_tuned_values_reach_ours_settings_only(tmp_path):
     """With a value no method has (the studies' 0.5 is also IQL's own), a leak to the published settings shows:
     tuned.ours reaches ours' settings (ours, ours-reuse, on any data), never an algorithm's published ones,
@@ -241,6 +251,7 @@ def test_a_datasets_tuned_values_reach_ours_settings_only(tmp_path):
             assert load_recipe(train, args).to_dict()["method"] == load_recipe(None, args).to_dict()["method"]
 
 
+@pytest.mark.slow
 def test_only_the_studied_datasets_have_tuned_values():
     """tuned.<settings> holds values a study chose for a dataset, keyed by whose settings they are (ours)."""
     tuned = {d: load_recipe(None, [f"dataset={d}", "method=iql"]).tuned for d in DATASETS}
@@ -255,12 +266,14 @@ def test_only_the_studied_datasets_have_tuned_values():
     ("method=sac", "Could not find 'method/sac'; available options in 'method': bc, bcq, cql, iql, ours, ours-reuse$"),
     ("optim.weight_decay_q=1e-3x", "optim.weight_decay_q"),
 ])
+@pytest.mark.slow
 def test_bad_choices_are_one_line_errors(override, message):
     with pytest.raises(RMError, match=message) as err:
         load_recipe(None, [override])
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_cli_reads_exponent_floats_and_names_unknown_keys(tmp_path, dataset, capsys):
     path = tiny(tmp_path, dataset)
     assert main(["train", str(path), "optim.weight_decay_q=1e-3", "trainer.steps=5", "--no-progress"]) == 0
@@ -284,6 +297,7 @@ def _read_only_folder(tmp_path: Path) -> Path | None:
 
 
 @pytest.mark.parametrize("where", ["a file in the way", "read-only"])
+@pytest.mark.slow
 def test_a_sweep_into_a_folder_it_cannot_write_is_one_line(tmp_path, dataset, capfd, where):
     path = tiny(tmp_path, dataset)
     if where == "read-only":
@@ -302,6 +316,7 @@ def test_a_sweep_into_a_folder_it_cannot_write_is_one_line(tmp_path, dataset, ca
     assert "Traceback" not in err
     assert f"cannot write the runs' folder {out}" in err and err.count("\n") == 1
 
+@pytest.mark.slow
 def test_submitit_local_launcher_runs_each_job_in_its_process_and_skips_them_next_time(tmp_path, dataset, capfd):
     path = tiny(tmp_path, dataset)
     out = tmp_path / "sweep"
@@ -317,6 +332,7 @@ def test_submitit_local_launcher_runs_each_job_in_its_process_and_skips_them_nex
     assert [(r / "checkpoint.pt").stat().st_mtime_ns for r in runs] == stamps  # nothing trained again
 
 
+@pytest.mark.slow
 def test_ray_launcher_on_a_local_ray_instance(tmp_path, dataset):
     pytest.importorskip("hydra_plugins.hydra_ray_launcher")
     path = tiny(tmp_path, dataset)
@@ -326,6 +342,7 @@ def test_ray_launcher_on_a_local_ray_instance(tmp_path, dataset):
     assert [steps_of(out / f"tiny-seed{k}") for k in (0, 1)] == [10, 10]
 
 
+@pytest.mark.slow
 def test_optuna_sweeper_maximises_the_returned_mean_score(tmp_path, dataset):
     pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
     path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 10, every: 10, episodes: 1, score: door}\n")
@@ -341,6 +358,7 @@ def test_optuna_sweeper_maximises_the_returned_mean_score(tmp_path, dataset):
     assert set(best["best_params"]) == {"data.alpha"} and isinstance(best["best_value"], float)
 
 
+@pytest.mark.slow
 def test_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_path, dataset):
     """SIGUSR2 (submitit's preemption warning): checkpoint at the next update, submitit requeues, the
     requeued job resumes; the finished run is the uninterrupted one's, bit for bit."""
@@ -375,6 +393,7 @@ def test_preempted_submitit_job_is_requeued_and_resumes_from_its_checkpoint(tmp_
 
 
 @pytest.mark.parametrize("jobs,signum", [(2, signal.SIGTERM), (1, signal.SIGTERM), (2, signal.SIGINT)])
+@pytest.mark.slow
 def test_a_signal_to_a_sweep_checkpoints_its_running_jobs_starts_no_other_and_the_rerun_resumes(
         tmp_path, dataset, jobs, signum):
     """What ``timeout``, Kubernetes and batch systems send: every running job (a loky worker with
@@ -486,6 +505,7 @@ def test_a_bar_in_a_file_prints_its_first_and_last_state_despite_postfix_refresh
     assert len(lines) == 2 and "0/100" in lines[0] and "100/100" in lines[1] and "\r" not in stream.getvalue()
 
 
+@pytest.mark.slow
 def test_progress_written_to_a_pipe_is_whole_lines(tmp_path, dataset):
     """A sweep's log is read as a file: no carriage-return redraws, the bar's state as whole lines."""
     proc = subprocess.run([sys.executable, "-m", "rm_torchrl.cli.main", "train", str(tiny(tmp_path, dataset)),
@@ -498,6 +518,7 @@ def test_progress_written_to_a_pipe_is_whole_lines(tmp_path, dataset):
 
 
 @pytest.mark.parametrize("suffix", [".gif", ".mp4"])
+@pytest.mark.slow
 def test_video_of_a_checkpoint_shows_real_frames_with_the_rm_state(tmp_path, dataset, suffix):
     import imageio.v2 as imageio
 
@@ -523,6 +544,7 @@ def test_rm_caption_names_the_events_in_their_order():
     assert rm_caption(torch.tensor([2, 1, 0]), ["a", "b", "c"]) == ("RM: e0 > b > a", "events 2/3")
 
 
+@pytest.mark.slow
 def test_report_embeds_a_gif_of_each_final_policy(tmp_path, dataset):
     path = tiny(tmp_path, dataset, "eval: {env: AdroitHandDoor-v1, max_steps: 8, every: 10, episodes: 1, score: door}\n")
     run_dir = train(load_recipe(path, ["trainer.steps=10"]), progress=False)

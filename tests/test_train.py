@@ -49,6 +49,7 @@ def read_scalar(run_dir: Path, name: str) -> list[float]:
                                                ("bc-mse", "loss_actor", "tanh_normal"), ("bc-mse", "loss_actor", "gaussian"),
                                                ("bc-nll", "loss_actor", "tanh_normal"), ("bc-nll", "loss_actor", "gaussian"),
                                                ("cql", "loss_qvalue", "tanh_normal"), ("bcq", "loss_vae", "tanh_normal")])
+@pytest.mark.slow
 def test_losses_go_down(tmp_path, dataset, method, term, actor):
     """bc-mse: CORL's mean squared error of the deterministic action; bc-nll: the likelihood of the dataset action."""
     algorithm, _, loss = method.partition("-")
@@ -99,6 +100,7 @@ TREATMENTS = [("iql", "none"), ("iql", "paper"), ("bc", "none"), ("bc", "paper")
 
 
 @pytest.mark.parametrize("algorithm,refine", TREATMENTS)
+@pytest.mark.slow
 def test_any_algorithm_trains_on_any_data_treatment(tmp_path, dataset, algorithm, refine):
     """A method option (its published settings) with data.refine=<any>: refined data gives the policy the RM
     encoding and the run a refine report, raw data neither; the default name says what differs from the option."""
@@ -169,6 +171,7 @@ def test_a_run_recipe_of_the_old_layout_loads_as_today(tmp_path, dataset):
 
 
 @pytest.mark.parametrize("value", ["true", "false"])
+@pytest.mark.slow
 def test_a_boolean_data_refine_is_a_one_line_hint(tmp_path, dataset, value, capsys):
     """data.refine is none | paper | reuse: true or false (the old layout's values), given on the command line to a
     composed recipe, a plain one or a run's own recipe.yaml, is refused in one line that says what they were."""
@@ -236,6 +239,7 @@ def test_a_recipe_file_with_a_string_for_a_bool_is_refused(tmp_path, dataset, ca
 
 
 @pytest.mark.parametrize("layout", ["today", "old"])
+@pytest.mark.slow
 def test_resume_reaches_the_same_parameters(tmp_path, dataset, layout):
     """old: the first half's checkpoint and recipe.yaml as the trainer wrote them before data.refine named the
     treatment (method.name ours, data.refine true beside data.reuse false); the run resumes from its own recipe.yaml."""
@@ -362,6 +366,7 @@ def test_bad_override_and_yaml(tmp_path, dataset):
         load_recipe(bad)
 
 
+@pytest.mark.slow
 def test_cli_train_and_multirun(tmp_path, dataset, capsys):
     path = make_recipe(tmp_path, dataset)
     assert main(["train", str(path), "trainer.steps=10", "--no-progress"]) == 0
@@ -372,6 +377,7 @@ def test_cli_train_and_multirun(tmp_path, dataset, capsys):
     assert "unknown key" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_multirun_again_skips_finished_resumes_killed_and_restarts_stuck(tmp_path, dataset, capfd):
     path = make_recipe(tmp_path, dataset)
     grid = ["train", str(path), "trainer.steps=10", "trainer.checkpoint_every=5", "seed=0,1,2", "--multirun"]
@@ -481,6 +487,7 @@ def test_cosine_actor_schedule(tmp_path, dataset):
 
 
 @pytest.mark.parametrize("schedule", ["constant", "cosine"])
+@pytest.mark.slow
 def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkeypatch, schedule):
     """A run that dies between checkpoints resumes from the last one; rows logged after it are dropped;
     the actor's lr schedule continues where it was."""
@@ -514,6 +521,7 @@ def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkey
 
 
 @pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++")), reason="torch.compile on CPU needs a C++ compiler")
+@pytest.mark.slow
 def test_compiled_loss_matches_eager():
     from tensordict import TensorDict
 
@@ -563,6 +571,7 @@ def test_failed_compile_trains_eagerly(tmp_path, dataset, monkeypatch, capsys):
     assert len(read_scalar(run_dir, "loss_qvalue")) == 2  # steps 20 and 30 were trained and logged
 
 
+@pytest.mark.slow
 def test_compilation_says_when_it_starts_and_how_long_it_took(tmp_path, dataset, monkeypatch, capsys):
     """The first step of a compiled run is slow; it says so. Dynamo traces for real here, with its eager
     backend (inductor's C++ build would take a minute): the messages are what is tested."""
@@ -576,6 +585,7 @@ def test_compilation_says_when_it_starts_and_how_long_it_took(tmp_path, dataset,
     assert "compil" not in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_run_many_threads_share_the_cores_unless_set(tmp_path, dataset, monkeypatch):
     from rm_torchrl.launch import processes as launch
 
@@ -589,6 +599,7 @@ def test_run_many_threads_share_the_cores_unless_set(tmp_path, dataset, monkeypa
     assert load_recipe(tmp_path / "runs" / "tiny-seed2" / "recipe.yaml").trainer.threads == 2  # 4 cores, 2 jobs
 
 
+@pytest.mark.slow
 def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_rest(tmp_path, dataset, capfd):
     """A long first run must not hold back the queue while its neighbour's core is free: the third run
     starts and finishes while the first trains; then SIGTERM (a real one, to this process) reaches the

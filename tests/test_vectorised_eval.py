@@ -102,6 +102,7 @@ def test_a_second_evaluation_repeats_the_first():
     assert first["episode_returns"] == second["episode_returns"]
 
 
+@pytest.mark.slow
 def test_door_with_the_rm_and_d4rl_reward_matches_the_sequential_evaluation():
     recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "eval.episodes=3", "eval.max_steps=25"])
     inputs = PolicyInput(["observation"], 39, 28, torch.zeros(39), torch.ones(39), load_event_spec("door"))
