@@ -11,7 +11,7 @@ are part of the v1 observation after the step:
 - door (``door_v0.py`` in D4RL's ``hand_manipulation_suite``): ``obs[35:38]`` is palm - handle;
 - relocate (``relocate_v0.py`` there): ``obs[30:33]`` is palm - ball.
 
-Checked against the stored rewards of D4RL's ``door-human-v0.hdf5`` in ``tests/test_d4rl_reward.py``.
+Checked against the stored rewards of D4RL's ``door-human-v0.hdf5`` in ``tests/test_envs_d4rl_reward.py``.
 
 gymnasium-robotics 1.2.1-1.4.2 print :data:`ADROIT_NOTICE` on stderr when imported (through
 ``farama_notifications``, not :mod:`warnings`); :func:`import_gymnasium_robotics` leaves it out
