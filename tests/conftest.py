@@ -6,12 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from helpers import write_d4rl
-
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     """A tiny D4RL-format file of door-like episodes, one per test module."""
+    from helpers import write_d4rl  # imports torch: only in the sessions that use this fixture
+
     return write_d4rl(tmp_path_factory.mktemp("data") / "door-like.hdf5")
 
 
