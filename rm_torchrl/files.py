@@ -21,6 +21,13 @@ def temp_name(name: str) -> str:
     return f".{name}.tmp"
 
 
+def private_temp(path: Path) -> Path:
+    """A temporary name beside ``path`` that is this process's own: two processes writing one file (two reports
+    into one folder at once) never write into each other's temporary file."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
 def write_atomic(path: Path, data: bytes | str, tmp: Path | None = None) -> None:
     """``data`` into ``path`` through ``tmp`` (default :func:`temp_name` beside it), renamed over
     ``path`` when complete; when writing fails the temporary file is removed, so a full disk keeps

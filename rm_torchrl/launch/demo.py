@@ -20,7 +20,7 @@ import numpy as np
 
 from rm_torchrl.data.embedded import DOOR_HUMAN_V0
 from rm_torchrl.errors import RMError
-from rm_torchrl.files import write_atomic
+from rm_torchrl.files import private_temp, write_atomic
 
 METHODS = ("ours", "iql")
 #: The default budget, measured (README, Quick start): at 2,000 steps every seed of ours scored above
@@ -181,6 +181,6 @@ def run_demo(out, steps: int = STEPS, seeds: int = SEEDS, seed: int = 0, episode
     report = Path(out) / "report"
     write_report([str(d) for d in run_dirs], report, dataset_from="source", prog="rmrl demo")
     text = summary(run_dirs, label)
-    write_atomic(report / RESULTS, text)
+    write_atomic(report / RESULTS, text, private_temp(report / RESULTS))
     print(f"wrote {report / RESULTS}", file=sys.stderr)
     return text

@@ -31,6 +31,8 @@ def run_grid(runs: list[tuple[str | None, list[str]]], jobs: int) -> None:
                 for i, (path, o, s) in enumerate(plans) if s in ("new", "resumable")]
         say_done([s for *_, s in plans])
         say_left_alone([(str(d), s) for d, s, _ in statuses])
+        if not todo:
+            return
         busy: list[int] = []
         run_many([argv for _, argv in todo], jobs, resume_hint="run the same command again to resume them", busy=busy)
         runs = [runs[todo[k][0]] for k in busy]

@@ -14,6 +14,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.files import private_temp
 from rm_torchrl.report.runs import OURS, OURS_REUSE, Group, Run, datasets, methods
 from rm_torchrl.report.stats import CONFIDENCE, Aggregates
 from rm_torchrl.report.tables import STAGE_LABELS, stage_sizes
@@ -39,7 +40,7 @@ def _figure(**kwargs):
 def _save(fig, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = private_temp(path)
     try:
         fig.savefig(tmp, format="png", dpi=DPI)
         os.replace(tmp, path)

@@ -29,7 +29,7 @@ from typing import Iterable
 import numpy as np
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.files import write_atomic
+from rm_torchrl.files import private_temp, write_atomic
 from rm_torchrl.report.runs import OURS, Group, Run, datasets, method_option, methods
 
 #: bootstrap resamples: 2,000 take 0.7 s for Table 1's 66 runs (and importing rliable 1-2 s)
@@ -120,7 +120,7 @@ class Aggregates:
 
 
 def write_json(aggregates: Aggregates, path: str | os.PathLike) -> None:
-    write_atomic(path, json.dumps(aggregates.to_json(), indent=1) + "\n")
+    write_atomic(path, json.dumps(aggregates.to_json(), indent=1) + "\n", private_temp(path))
 
 
 def _rliable():

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.files import write_atomic
+from rm_torchrl.files import private_temp, write_atomic
 
 RESULTS = "results.md"
 CURVES = "learning_curves.png"
@@ -74,7 +74,7 @@ def write_report(paths, out, dataset_from: str = "name", decimals: int = 1, reps
             text += extra(runs, out)
         except RMError as err:  # no OpenGL backend for the GIFs, say: the tables and figures are still written
             extra_error = err
-    write_atomic(out / RESULTS, text)
+    write_atomic(out / RESULTS, text, private_temp(out / RESULTS))
     written.insert(0, out / RESULTS)
 
     print("\n".join([*describe(runs, groups, stats), "", results_table(groups, decimals, stats)]))
