@@ -51,9 +51,14 @@ def lock_holder(run_dir: Path) -> str | None:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         return None
     except OSError:
-        return os.read(fd, 64).decode(errors="replace").strip() or "another process"
+        return _holder(fd)
     finally:
         os.close(fd)
+
+
+def _holder(fd: int) -> str:
+    """The pid a lock file records (its holder writes it), for messages."""
+    return os.read(fd, 64).decode(errors="replace").strip() or "another process"
 
 
 class RunLock:
@@ -76,7 +81,7 @@ class RunLock:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
+            holder = _holder(fd)
             os.close(fd)
             if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
                 raise RunBusy(f"run directory {self.path.parent} is in use by process {holder}") from None
