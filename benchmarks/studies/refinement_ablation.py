@@ -14,7 +14,8 @@ Cells (``rmrl train`` option overrides; every label comes from the run's recipe.
 * BC (CORL's) on the raw and on the refined data (``method=bc``, ``method=bc data.refine=paper``).
 
 Budgets: 50k steps x 5 seeds on door-human-v0 (D4RL's file) and on the generated kitchen-partial, evaluating every
-2,000 steps over 10 episodes (vectorised), as Table 1; 500k steps x 3 seeds on door-human-v0 for IQL with ours'
+2,000 steps over 10 episodes (vectorised), as Table 1, and BC's two cells on D4RL's kitchen-complete-v0 (the one
+D4RL kitchen file here); 500k steps x 3 seeds on door-human-v0 for IQL with ours'
 settings, evaluating every 10,000. Seeds: per dataset the first that no choice of settings used
 (``benchmarks/results/choices.json``). Runs go to ``--out`` and are resumable (run the command again: finished
 runs are skipped, killed ones continue); ``collect`` copies each finished run whose recipe matches a cell in every
@@ -54,12 +55,14 @@ CELLS = {
     "bc": ["method=bc"],
     "bc-published-paper": ["method=bc", "data.refine=paper"],
 }
-#: budget -> steps, evaluation and checkpoint interval, seeds per cell, dataset options, cells
+#: budget -> steps, evaluation and checkpoint interval, seeds per cell, and each dataset option's cells
+#: (D4RL's kitchen-complete-v0: BC's two cells, the real kitchen data's check beside the generated kitchen-partial)
 BUDGETS = {
     "50k": {"steps": 50_000, "every": 2_000, "checkpoint": 5_000, "seeds": 5,
-            "datasets": ["door-human-v0", "rmrl-kitchen-partial"], "cells": list(CELLS)},
+            "datasets": {"door-human-v0": list(CELLS), "rmrl-kitchen-partial": list(CELLS),
+                         "kitchen-complete-v0": ["bc", "bc-published-paper"]}},
     "500k": {"steps": 500_000, "every": 10_000, "checkpoint": 10_000, "seeds": 3,
-             "datasets": ["door-human-v0"], "cells": ["iql-ours-none", "ours"]},
+             "datasets": {"door-human-v0": ["iql-ours-none", "ours"]}},
 }
 #: recipe entries that decide what a run learns and how it is evaluated (a run elsewhere matches a cell on these)
 TRAINING = ("data.name", "data.episode_ends", "data.refine", "data.events", "data.alpha", "data.constraints", "rm",
@@ -79,11 +82,11 @@ def plan(budgets=None, datasets=None, cells=None, seeds=None, out: str = "runs")
     for budget, b in BUDGETS.items():
         if budgets and budget not in budgets:
             continue
-        for dataset in b["datasets"]:
+        for dataset, dataset_cells in b["datasets"].items():
             if datasets and dataset not in datasets:
                 continue
             for seed in seeds or first_free_seeds(dataset, choices, b["seeds"]):
-                for cell in b["cells"]:
+                for cell in dataset_cells:
                     if cells and cell not in cells:
                         continue
                     name = run_name(dataset, cell, budget)
