@@ -111,7 +111,7 @@ def main() -> int:
     steps = int(loaded.recipe.eval.max_steps)
     env = make_env(noise=True)
     tasks = {"env_reset": [], "data_start": [], "data_mean_robot": []}
-    mean_robot = arrays["observations"][starts, :9].mean(0)
+    mean_robot = arrays["observations"][starts, :9].astype(np.float64).mean(0)
     for k in range(args.episodes):
         env.reset(seed=k)
         tasks["env_reset"].append(rollout(loaded, env, steps))
@@ -125,7 +125,7 @@ def main() -> int:
     env.reset(seed=0)
     reset_robot = env.unwrapped.data.qpos[:9].copy()
     env.close()
-    spread = arrays["observations"][starts, :9].std(0)
+    spread = arrays["observations"][starts, :9].astype(np.float64).std(0)
     print(json.dumps({
         "run": str(args.run), "checkpoint_step": loaded.step, "data": str(source),
         "reset_robot_minus_data_mean_start": np.round(reset_robot - mean_robot, 4).tolist(),

@@ -49,32 +49,34 @@ def run(args) -> None:
     run_grid(pending(grid(args.out), STUDY, args.override), args.jobs)
 
 
+KINDS = (("env_reset", "env reset"), ("data_start", "recorded first states"),
+         ("data_mean_robot", "reset, robot at the data's mean first pose"))
+
+
 def diagnostics_lines() -> list[str]:
     found = sorted((STUDY / "diagnostics").glob("*.json"))
     if not found:
         return []
+    runs = [json.loads(path.read_text()) for path in found]
     lines = ["## Where the policy starts", "",
-             "`benchmarks/diagnostics/kitchen_start_pose.py` on a run's final checkpoint: tasks completed per episode "
-             "(mean over episodes) from FrankaKitchen-v1's reset (the robot at D4RL v0's `init_qpos`: what the "
-             "evaluation above does), from each recorded episode's first state, and from the reset with the robot's "
-             "joints moved to the mean of the recorded first states; and the dataset's actions replayed open loop "
-             "from each recorded first state.", "",
-             "| run | env reset | recorded first states | reset, robot at the data's mean start | open-loop replay: "
-             "tasks (of 4), mean robot gap (rad) |", "|---|---:|---:|---:|---|"]
-    for path in found:
-        d = json.loads(path.read_text())
-        policy = d["policy"]
-        replay = d["replay"]
-        lines.append(f"| [{Path(d['run']).name}](diagnostics/{path.name}) | "
-                     f"{policy['env_reset']['mean_tasks']:.2f} ({len(policy['env_reset']['tasks_per_episode'])}) | "
-                     f"{policy['data_start']['mean_tasks']:.2f} ({len(policy['data_start']['tasks_per_episode'])}) | "
-                     f"{policy['data_mean_robot']['mean_tasks']:.2f} "
-                     f"({len(policy['data_mean_robot']['tasks_per_episode'])}) | "
-                     f"{np.mean([len(r['tasks']) for r in replay]):.2f}, {np.mean([r['robot_gap_mean'] for r in replay]):.3f} "
-                     f"({len(replay)} episodes; the first two: {len(replay[0]['tasks'])} and "
-                     f"{len(replay[1]['tasks']) if len(replay) > 1 else '-'} tasks) |")
-    reset = json.loads(found[0].read_text())["reset_robot_minus_data_mean_start"]
-    lines += ["", f"The reset pose minus the data's mean first pose, per robot joint: {reset} (rad).", ""]
+             "`benchmarks/diagnostics/kitchen_start_pose.py` on each run's final checkpoint: tasks completed per "
+             "episode, mean over the episodes (how many), from FrankaKitchen-v1's reset (the robot at D4RL v0's "
+             "`init_qpos`: what the evaluation above does), from each recorded episode's first state, and from the "
+             "reset with the robot's joints moved to the mean of the recorded first poses.", "",
+             "| run | " + " | ".join(name for _, name in KINDS) + " |", "|---|" + "---:|" * len(KINDS)]
+    for path, d in zip(found, runs):
+        cells = [f"{d['policy'][k]['mean_tasks']:.2f} ({len(d['policy'][k]['tasks_per_episode'])})" for k, _ in KINDS]
+        lines.append(f"| [{Path(d['run']).name}](diagnostics/{path.name}) | " + " | ".join(cells) + " |")
+    means = [np.mean([d["policy"][k]["mean_tasks"] for d in runs]) for k, _ in KINDS]
+    lines.append(f"| mean over {len(runs)} runs | " + " | ".join(f"{m:.2f}" for m in means) + " |")
+    replay = runs[0]["replay"]
+    lines += ["", f"The dataset's actions replayed open loop from each recorded first state (no policy): "
+              f"{np.mean([len(r['tasks']) for r in replay]):.2f} tasks on average over {len(replay)} episodes "
+              f"(per episode: {', '.join(str(len(r['tasks'])) for r in replay)}), the robot joints "
+              f"{np.mean([r['robot_gap_mean'] for r in replay]):.3f} rad from the recorded ones on average (first "
+              f"episode {replay[0]['robot_gap_mean']:.3f}). The reset pose minus the data's mean first pose, per robot "
+              f"joint (rad): {[round(x, 3) for x in runs[0]['reset_robot_minus_data_mean_start']]}; the first poses' "
+              f"standard deviation: {[round(x, 3) for x in runs[0]['data_start_robot_std']]}.", ""]
     return lines
 
 
