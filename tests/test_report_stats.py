@@ -468,3 +468,36 @@ def test_every_interval_takes_at_least_the_minimum_resamples():
         cell_iqm([1.0, 2.0, 3.0], reps=2)
     with pytest.raises(RMError, match="at least 50 bootstrap resamples"):
         probability_of_improvement([1.0, 2.0], [0.0, 1.0], reps=2)
+
+
+@pytest.mark.slow
+def test_bc_kitchen_complete_report(tmp_path):
+    """``benchmarks/studies/bc_kitchen_complete.py report``: per-seed rows in tasks, the published BC beside them,
+    the start-pose diagnostics' mean row; an unfinished run stays out."""
+    results = tmp_path / "results"
+    for seed, final in zip(range(3), (0.0, 50.0, 25.0)):
+        write_run(tmp_path / "out", "kitchen-complete-v0-bc", seed, "bc", False, "kitchen",
+                  {s: (75.0 if s == 20_000 else final) for s in range(2_000, 50_001, 2_000)})
+    write_run(tmp_path / "out", "kitchen-complete-v0-bc", 3, "bc", False, "kitchen", {2_000: 100.0})
+    (results / "diagnostics").mkdir(parents=True)
+    for seed, reset in ((0, [0, 0]), (1, [2, 3])):
+        (results / "diagnostics" / f"kitchen-complete-v0-bc-seed{seed}.json").write_text(json.dumps({
+            "run": f"/somewhere/kitchen-complete-v0-bc-seed{seed}", "reset_robot_minus_data_mean_start": [0.03, -0.05],
+            "data_start_robot_std": [0.032, 0.057],
+            "replay": [{"tasks": ["kettle", "microwave"], "robot_gap_mean": 0.1}, {"tasks": [], "robot_gap_mean": 0.3}],
+            "policy": {kind: {"tasks_per_episode": tasks, "mean_tasks": float(np.mean(tasks))} for kind, tasks in
+                       (("env_reset", reset), ("data_start", [1, 1, 1]), ("data_mean_robot", [2, 1]))}}))
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "studies" / "bc_kitchen_complete.py"), "report",
+                           "--out", str(tmp_path / "out"), "--results", str(results), "--reps", "200"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    rows = table_rows((results / "results.md").read_text())
+    assert rows["1"] == ["50.0", "2.00", "75.0 (20,000)", "51.0"]
+    assert "3" not in rows  # stopped at 2,000 of 50,000 steps
+    assert rows["mean over 2 runs"] == ["1.25", "1.00", "1.50"]
+    text = (results / "results.md").read_text()
+    assert "final score 25.0 ± 25.0" in text and "33.8 (1.35 tasks)" in text
+    assert "1.00 tasks on average over 2 episodes (per episode: 2, 0)" in text
+    summary = json.loads((results / "summary.json").read_text())
+    assert sorted(s["seed"] for s in summary) == [0, 1, 2] and {s["source"] for s in summary} == {"d4rl"}
+    assert (results / "curves.png").read_bytes()[:8] == PNG_MAGIC

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import CHOICES, RESULTS, collect, gather, mean_std, pending, run_study
+from common import CHOICES, RESULTS, add_run_options, collect, gather, mean_std, pending, run_study
 
 from rm_torchrl.files import write_atomic
 from rm_torchrl.launch import run_grid
@@ -46,15 +46,15 @@ def grid(out: str) -> list[tuple[None, list[str]]]:
 
 
 def run(args) -> None:
-    run_grid(pending(grid(args.out), STUDY, args.override), args.jobs)
+    run_grid(pending(grid(args.out), Path(args.results), args.override), args.jobs)
 
 
 KINDS = (("env_reset", "env reset"), ("data_start", "recorded first states"),
          ("data_mean_robot", "reset, robot at the data's mean first pose"))
 
 
-def diagnostics_lines() -> list[str]:
-    found = sorted((STUDY / "diagnostics").glob("*.json"))
+def diagnostics_lines(study: Path) -> list[str]:
+    found = sorted((study / "diagnostics").glob("*.json"))
     if not found:
         return []
     runs = [json.loads(path.read_text()) for path in found]
@@ -81,14 +81,15 @@ def diagnostics_lines() -> list[str]:
 
 
 def report(args) -> None:
+    study = Path(args.results)
     skipped: list[str] = []
-    runs, left_out = leave_out_chosen([r for r in gather(Path(args.out), STUDY, skipped)
+    runs, left_out = leave_out_chosen([r for r in gather(Path(args.out), study, skipped)
                                        if r.path.name.startswith(f"{DATASET}-bc-seed")], read_choices(CHOICES))
     done = [r for r in runs if r.final_step >= STEPS]
     if not done:
-        raise SystemExit(f"no finished {DATASET} BC run under {args.out} or {STUDY / 'runs'}")
-    summary = collect(done, STUDY)
-    write_atomic(STUDY / "summary.json", json.dumps(summary, indent=1) + "\n")
+        raise SystemExit(f"no finished {DATASET} BC run under {args.out} or {study / 'runs'}")
+    summary = collect(done, study)
+    write_atomic(study / "summary.json", json.dumps(summary, indent=1) + "\n")
     finals = [r.final_value for r in done]
     est = cell_iqm(finals, args.reps)
     lines = ["# CORL's BC on D4RL kitchen-complete-v0", "",
@@ -106,14 +107,14 @@ def report(args) -> None:
               f"{est.hi:.1f}] (95% stratified-bootstrap CI, {args.reps} resamples).", "",
               "Published BC on kitchen-complete-v0 (D4RL's v0 env, other budgets): " + "; ".join(
                   f"{score} ({score / TASK:.2f} tasks), {where}" for score, where in PUBLISHED) + ".", ""]
-    lines += diagnostics_lines()
-    plot_learning_curves([Group(DATASET, "BC", done)], STUDY / "curves.png")
+    lines += diagnostics_lines(study)
+    plot_learning_curves([Group(DATASET, "BC", done)], study / "curves.png")
     lines += ["![learning curves](curves.png)", ""]
     for note in (*skipped, *left_out):
         lines.append(f"- left out: {note}")
-    if (STUDY / "findings.md").is_file():
+    if (study / "findings.md").is_file():
         lines += ["", "What it says: [findings.md](findings.md).", ""]
-    write_atomic(STUDY / "results.md", "\n".join(lines) + "\n")
+    write_atomic(study / "results.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
@@ -121,12 +122,11 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="train the seeds not yet in runs/ (resumable)")
-    r.add_argument("--out", default="runs", help="run directories (not committed)")
-    r.add_argument("--jobs", type=int, default=2)
-    r.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
-                   help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
+    add_run_options(r)
     rep = sub.add_parser("report", help="summary.json, results.md and curves.png")
     rep.add_argument("--out", default="runs", help="where this session's run directories are")
+    for command in (r, rep):
+        command.add_argument("--results", default=str(STUDY), help="the study's committed results (default %(default)s)")
     rep.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples (default {REPS})")
     args = p.parse_args()
     {"run": run, "report": report}[args.command](args)

@@ -132,6 +132,15 @@ def collect(runs, results: Path) -> list[dict]:
     return summary
 
 
+def add_run_options(parser, out: str = "runs") -> None:
+    """The options every study's ``run`` shares: where run directories go, how many train at once, and extra
+    recipe overrides for every run."""
+    parser.add_argument("--out", default=out, help="run directories (not committed)")
+    parser.add_argument("--jobs", type=int, default=2, help="runs training at once (default 2)")
+    parser.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
+                        help="an extra recipe override for every run, e.g. trainer.threads=1 (repeatable)")
+
+
 def run_study(main, name: str) -> None:
     """``main()`` as a command: its exit status; a signal to its runs exits 130/143 saying what they saved (the
     runs checkpointed), bad input (a broken run directory, ``--reps 0``) is one line, never a traceback."""

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, ROOT, mean_std, run_study
+from common import RESULTS, ROOT, add_run_options, mean_std, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.events.spec import load_event_spec
@@ -195,7 +195,7 @@ def write_results(args, arms: dict) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="runs/decline-study", help="run directories (not committed)")
+    add_run_options(p, out="runs/decline-study")
     p.add_argument("--results", default=str(RESULTS / "decline-study"))
     p.add_argument("--lambdas", nargs="*", default=["0", "1e-4", "1e-3", "1e-2"])
     p.add_argument("--adroit-lambdas", nargs="*", default=["0", "1e-4"],
@@ -208,10 +208,7 @@ def main() -> int:
     p.add_argument("--score", default="door", choices=sorted(SCORE_RANGES), help="the score's D4RL range")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=50_000)
-    p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--report-only", action="store_true", help="only tabulate the runs that finished")
-    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
-                   help="an extra recipe override for every run (repeatable)")
     args = p.parse_args()
     if not args.report_only:
         todo = [(path, o) for path, o in grid(args) if not finished(args, run_name(o))]

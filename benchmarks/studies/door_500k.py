@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import CHOICES, LABELS, PAPER, RESULTS, collect, gather, mean_std, pending, run_study
+from common import CHOICES, LABELS, PAPER, RESULTS, add_run_options, collect, gather, mean_std, pending, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
@@ -301,16 +301,13 @@ def report(args) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("command", choices=("run", "report", "adopt"))
-    p.add_argument("--out", default="runs", help="run directories (not committed)")
+    add_run_options(p)
     p.add_argument("--results", default=str(RESULTS / "door-human-v0-500k"))
     p.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     p.add_argument("--arms", nargs="+", choices=list(ARMS), default=[],
                    help="run these fix candidates (ours with ARMS' overrides) instead of the methods; with adopt: "
                         "the arms whose runs become ours' default runs")
-    p.add_argument("--jobs", type=int, default=2)
-    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
-                   help="extra recipe overrides for every run (e.g. trainer.threads=1)")
     p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the CIs (default {REPS})")
     args = p.parse_args()
     {"run": run, "report": report, "adopt": adopt}[args.command](args)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import CHOICES, RESULTS, ROOT, mean_std, run_study
+from common import CHOICES, RESULTS, ROOT, add_run_options, mean_std, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
@@ -213,15 +213,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="train the cells not yet in runs/ (resumable)")
-    r.add_argument("--out", default="runs", help="run directories (not committed)")
-    r.add_argument("--jobs", type=int, default=2)
+    add_run_options(r)
     r.add_argument("--budget", nargs="+", choices=list(BUDGETS), help="only these budgets (default: all)")
     r.add_argument("--datasets", nargs="+", choices=sorted({d for b in BUDGETS.values() for d in b["datasets"]}),
                    help="only these dataset options")
     r.add_argument("--cells", nargs="+", choices=list(CELLS), help="only these cells")
     r.add_argument("--seeds", nargs="+", type=int, help="these seeds (default: the first no choice used)")
-    r.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
-                   help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
     c = sub.add_parser("collect", help="copy finished runs that match a cell exactly into runs/")
     c.add_argument("dirs", nargs="+", help="run directories or folders holding them")
     rep = sub.add_parser("report", help="summary.json, results.md and the curves from runs/")

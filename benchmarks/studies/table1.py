@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (run_study, CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
+from common import (run_study, add_run_options, CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
                     pending, rmrl, row)
 
 from rm_torchrl.launch import run_grid
@@ -261,14 +261,11 @@ def report(args) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("command", choices=("setup", "run", "report"))
-    p.add_argument("--out", default="runs", help="run directories (not committed)")
+    add_run_options(p)
     p.add_argument("--results", default=str(RESULTS / "table1"))
     p.add_argument("--seeds", nargs="+", type=int, default=None,
                    help="these seeds on every dataset (default: per dataset the first five no choice used)")
-    p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--datasets", nargs="+", choices=list(DATASETS), help="only these datasets (default: all)")
-    p.add_argument("--set", dest="override", action="append", default=[], metavar="KEY=VALUE",
-                   help="an extra override for every run, e.g. trainer.threads=1 (repeatable)")
     p.add_argument("--methods", nargs="+", choices=list(BUDGETS), help="only these methods (default: all)")
     p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the report's CIs (default {REPS})")
     args = p.parse_args()
