@@ -186,9 +186,12 @@ def report(args) -> None:
             raw = here.get((shown, budget, algorithm, hparams, "none"))
             if refine != "paper" or not raw:
                 continue
-            p = probability_of_improvement([r.final_value for r in refined], [r.final_value for r in raw], args.reps)
-            lines.append(f"| {algorithm} | {hparams} | {p.value:.2f} [{p.lo:.2f}, {p.hi:.2f}] | "
-                         f"{len(refined)} / {len(raw)} |")
+            if min(len(refined), len(raw)) < 2:  # a bootstrap over one run says nothing about the spread
+                shown_p = "– (one run on a side)"
+            else:
+                p = probability_of_improvement([r.final_value for r in refined], [r.final_value for r in raw], args.reps)
+                shown_p = f"{p.value:.2f} [{p.lo:.2f}, {p.hi:.2f}]"
+            lines.append(f"| {algorithm} | {hparams} | {shown_p} | {len(refined)} / {len(raw)} |")
         lines.append("")
         panels.setdefault(budget, []).extend(
             Group(shown, display_label(*k[2:]), members) for k, members in here.items())
