@@ -30,6 +30,7 @@ from tensordict import TensorDict
 from rm_torchrl import load_policy
 from rm_torchrl.data.d4rl import read_d4rl_arrays
 from rm_torchrl.envs.kitchen_v0 import D4RL_V0_TASKS, kitchen_v0_goal
+from rm_torchrl.errors import RMError
 
 TASKS = list(D4RL_V0_TASKS)
 
@@ -100,11 +101,20 @@ def main() -> int:
     p.add_argument("--episodes", type=int, default=10, help="episodes from the env's reset and from the mean pose")
     p.add_argument("--replay", type=int, default=19, help="dataset episodes replayed open loop")
     args = p.parse_args()
-    loaded = load_policy(args.run)
+    try:
+        loaded = load_policy(args.run)
+    except RMError as err:
+        raise SystemExit(f"kitchen_start_pose.py: error: {err}")
     if list(loaded.inputs.obs_keys) != ["observation"]:
         raise SystemExit(f"{args.run}: its policy reads {loaded.inputs.obs_keys}; this diagnostic runs policies "
                          "that read the observation alone (BC, IQL on the raw data)")
+    if loaded.recipe.eval.env != "FrankaKitchen-v1" or loaded.recipe.eval.observation != "kitchen-v0":
+        raise SystemExit(f"{args.run}: a run evaluated in FrankaKitchen-v1 with the D4RL v0 observation is needed, "
+                         f"this one evaluates in {loaded.recipe.eval.env!r} ({loaded.recipe.eval.observation})")
     source = Path(loaded.recipe.data.source)
+    if source.suffix != ".hdf5":
+        raise SystemExit(f"{args.run}: its data {source} is not a D4RL file (.hdf5), whose episodes' first states "
+                         "this diagnostic reads")
     arrays = read_d4rl_arrays(source)
     ends = np.flatnonzero(arrays["terminals"]) + 1
     starts = np.r_[0, ends[:-1]]
