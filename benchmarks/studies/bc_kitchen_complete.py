@@ -14,21 +14,19 @@ on a run) are summarised beside them.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from common import CHOICES, RESULTS, add_run_options, collect, gather, mean_std, pending, run_study
+from common import CHOICES, RESULTS, add_reps_option, add_run_options, collect, gather, mean_std, pending, run_study, study_commands
 
 from rm_torchrl.files import write_atomic
 from rm_torchrl.launch import run_grid
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves
 from rm_torchrl.report.runs import Group
-from rm_torchrl.report.stats import REPS, cell_iqm
+from rm_torchrl.report.stats import cell_iqm
 
 STUDY = RESULTS / "bc-kitchen-complete"
 DATASET = "kitchen-complete-v0"
@@ -119,15 +117,14 @@ def report(args) -> None:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
+    p, sub = study_commands(__doc__)
     r = sub.add_parser("run", help="train the seeds not yet in runs/ (resumable)")
     add_run_options(r)
     rep = sub.add_parser("report", help="summary.json, results.md and curves.png")
     rep.add_argument("--out", default="runs", help="where this session's run directories are")
     for command in (r, rep):
         command.add_argument("--results", default=str(STUDY), help="the study's committed results (default %(default)s)")
-    rep.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples (default {REPS})")
+    add_reps_option(rep)
     args = p.parse_args()
     {"run": run, "report": report}[args.command](args)
     return 0

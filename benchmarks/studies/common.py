@@ -7,6 +7,7 @@ folder first on ``sys.path``. Committed results follow one layout, ``benchmarks/
 """
 from __future__ import annotations
 
+import argparse
 import shutil
 import subprocess
 import sys
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from rm_torchrl.report.runs import load_runs, read_eval_csv
+from rm_torchrl.report.stats import REPS
 from rm_torchrl.run_format import run_identity
 from rm_torchrl.train.rundir import load_checkpoint
 
@@ -130,6 +132,17 @@ def collect(runs, results: Path) -> list[dict]:
                         "final_events": float(run.evals["events_mean"][-1]),
                         "machine_seconds": None if elapsed is None else round(float(elapsed), 1)})
     return summary
+
+
+def study_commands(doc: str):
+    """A study's parser with subcommands (run, report, ...), its help the module's docstring as written."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    return parser, parser.add_subparsers(dest="command", required=True)
+
+
+def add_reps_option(parser) -> None:
+    """The report's bootstrap resamples, the same default in every study."""
+    parser.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the CIs (default {REPS})")
 
 
 def add_run_options(parser, out: str = "runs") -> None:

@@ -31,14 +31,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import CHOICES, LABELS, PAPER, RESULTS, add_run_options, collect, gather, mean_std, pending, run_study
+from common import CHOICES, LABELS, PAPER, RESULTS, add_reps_option, add_run_options, collect, gather, mean_std, pending, run_study
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves
 from rm_torchrl.report.runs import group_runs, load_runs
-from rm_torchrl.report.stats import REPS, aggregate
+from rm_torchrl.report.stats import aggregate
 from rm_torchrl.run_format import run_identity, run_label, upgrade_recipe
 from rm_torchrl.report.tables import CI, interval, iqm_note
 from rm_torchrl.train.recipe import load_recipe
@@ -308,7 +308,7 @@ def main() -> int:
     p.add_argument("--arms", nargs="+", choices=list(ARMS), default=[],
                    help="run these fix candidates (ours with ARMS' overrides) instead of the methods; with adopt: "
                         "the arms whose runs become ours' default runs")
-    p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the CIs (default {REPS})")
+    add_reps_option(p)
     args = p.parse_args()
     {"run": run, "report": report, "adopt": adopt}[args.command](args)
     return 0

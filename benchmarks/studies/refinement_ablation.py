@@ -25,7 +25,6 @@ folder it came from). ``run`` skips cells already there.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -33,14 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common import CHOICES, RESULTS, ROOT, add_run_options, mean_std, run_study
+from common import CHOICES, RESULTS, ROOT, add_reps_option, add_run_options, mean_std, run_study, study_commands
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves
 from rm_torchrl.report.runs import Group, find_run_dirs, load_runs, read_eval_csv, read_recipe
-from rm_torchrl.report.stats import REPS, cell_iqm, probability_of_improvement
+from rm_torchrl.report.stats import cell_iqm, probability_of_improvement
 from rm_torchrl.run_format import display_label, run_identity, upgrade_recipe
 from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint, recipe_changes
@@ -213,8 +212,7 @@ def report(args) -> None:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
+    p, sub = study_commands(__doc__)
     r = sub.add_parser("run", help="train the cells not yet in runs/ (resumable)")
     add_run_options(r)
     r.add_argument("--budget", nargs="+", choices=list(BUDGETS), help="only these budgets (default: all)")
@@ -225,7 +223,7 @@ def main() -> int:
     c = sub.add_parser("collect", help="copy finished runs that match a cell exactly into runs/")
     c.add_argument("dirs", nargs="+", help="run directories or folders holding them")
     rep = sub.add_parser("report", help="summary.json, results.md and the curves from runs/")
-    rep.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples (default {REPS})")
+    add_reps_option(rep)
     args = p.parse_args()
     {"run": run, "collect": collect, "report": report}[args.command](args)
     return 0

@@ -29,14 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (run_study, add_run_options, CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
+from common import (run_study, add_reps_option, add_run_options, CHOICES, GENERATED, GENERATED_MARK, LABELS, PAPER, PAPER_T2, RESULTS, collect, gather, mean_std,
                     pending, rmrl, row)
 
 from rm_torchrl.launch import run_grid
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves, plot_performance_profile
 from rm_torchrl.report.runs import group_runs
-from rm_torchrl.report.stats import REPS, aggregate
+from rm_torchrl.report.stats import aggregate
 from rm_torchrl.report.tables import CI, aggregate_lines, interval, iqm_note
 from rm_torchrl.run_format import REUSED, run_identity
 
@@ -267,7 +267,7 @@ def main() -> int:
                    help="these seeds on every dataset (default: per dataset the first five no choice used)")
     p.add_argument("--datasets", nargs="+", choices=list(DATASETS), help="only these datasets (default: all)")
     p.add_argument("--methods", nargs="+", choices=list(BUDGETS), help="only these methods (default: all)")
-    p.add_argument("--reps", type=int, default=REPS, help=f"bootstrap resamples of the report's CIs (default {REPS})")
+    add_reps_option(p)
     args = p.parse_args()
     if args.command == "setup":
         setup(args)
