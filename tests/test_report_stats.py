@@ -501,3 +501,61 @@ def test_bc_kitchen_complete_report(tmp_path):
     summary = json.loads((results / "summary.json").read_text())
     assert sorted(s["seed"] for s in summary) == [0, 1, 2] and {s["source"] for s in summary} == {"d4rl"}
     assert (results / "curves.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def _brute_force_p(x, y) -> float:
+    """The two-sided permutation p of Mann-Whitney's U over every split of the pooled runs: the reference."""
+    from itertools import combinations
+
+    from scipy import stats
+
+    pooled = np.concatenate([x, y])
+    observed = stats.mannwhitneyu(x, y, method="asymptotic").statistic
+    us = []
+    for idx in combinations(range(len(pooled)), len(x)):
+        mask = np.zeros(len(pooled), bool)
+        mask[list(idx)] = True
+        us.append(stats.mannwhitneyu(pooled[mask], pooled[~mask], method="asymptotic").statistic)
+    us = np.array(us)
+    return min(1.0, 2 * min(np.mean(us >= observed - 1e-9), np.mean(us <= observed + 1e-9)))
+
+
+@pytest.mark.parametrize("x, y", [([5.0, 6.0, 7.0, 8.0], [1.0, 2.0, 3.0, 4.0]),
+                                  ([1.0, 1.0, 2.0, 3.0, 5.0], [1.0, 2.0, 2.0, 0.0, 4.0]),
+                                  ([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+                                  ([3.3, 1.2, 9.9, 4.0], [2.2, 8.1, 0.5])])
+def test_rank_test_is_the_exact_permutation_p(x, y):
+    from rm_torchrl.report.stats import rank_test
+
+    assert rank_test(x, y) == pytest.approx(_brute_force_p(np.array(x), np.array(y)), abs=1e-9)
+    assert rank_test(x, y) == pytest.approx(rank_test(y, x), abs=1e-9)
+
+
+def test_rank_test_without_ties_is_scipys_exact_mann_whitney():
+    from scipy import stats
+
+    from rm_torchrl.report.stats import rank_test
+
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=15), rng.normal(size=15) + 1.0
+    assert rank_test(x, y) == stats.mannwhitneyu(x, y, alternative="two-sided", method="exact").pvalue
+
+
+def test_rank_test_refuses_empty_or_nonfinite_sides():
+    from rm_torchrl.errors import RMError
+    from rm_torchrl.report.stats import rank_test
+
+    with pytest.raises(RMError, match="finite scores on both sides"):
+        rank_test([], [1.0])
+    with pytest.raises(RMError, match="finite scores on both sides"):
+        rank_test([np.nan, 1.0], [1.0, 2.0])
+
+
+@pytest.mark.parametrize("p, adjusted", [([0.01, 0.04, 0.03], [0.03, 0.06, 0.06]),
+                                         ([0.5, 0.001], [0.5, 0.002]),
+                                         ([0.4, 0.3, 0.2, 0.1], [0.6, 0.6, 0.6, 0.4]),
+                                         ([0.9], [0.9])])
+def test_holm_step_down(p, adjusted):
+    from rm_torchrl.report.stats import holm
+
+    assert holm(p) == pytest.approx(adjusted)

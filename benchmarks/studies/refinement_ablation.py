@@ -39,7 +39,7 @@ from rm_torchrl.files import write_atomic
 from rm_torchrl.report.choices import first_free_seeds, leave_out_chosen, read_choices
 from rm_torchrl.report.plots import plot_learning_curves
 from rm_torchrl.report.runs import Group, find_run_dirs, load_runs, read_eval_csv, read_recipe
-from rm_torchrl.report.stats import cell_iqm, probability_of_improvement
+from rm_torchrl.report.stats import cell_iqm, holm, probability_of_improvement, rank_test
 from rm_torchrl.run_format import display_label, run_identity, upgrade_recipe
 from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint, recipe_changes
@@ -58,6 +58,7 @@ CELLS = {
 #: (D4RL's kitchen-complete-v0: BC's two cells, the real kitchen data's check beside the generated kitchen-partial)
 BUDGETS = {
     "50k": {"steps": 50_000, "every": 2_000, "checkpoint": 5_000, "seeds": 5,
+            "seeds_of": {"door-human-v0": 15},  # pre-registered (PROTOCOL.md section 8): 15 seeds a cell
             "datasets": {"door-human-v0": list(CELLS), "rmrl-kitchen-partial": list(CELLS),
                          "kitchen-complete-v0": ["bc", "bc-published-paper"]}},
     "500k": {"steps": 500_000, "every": 10_000, "checkpoint": 10_000, "seeds": 3,
@@ -68,6 +69,19 @@ TRAINING = ("data.name", "data.episode_ends", "data.refine", "data.events", "dat
             "method", "network", "optim", "trainer.steps", "trainer.batch_size", "trainer.gamma", "trainer.tau",
             "trainer.normalize_obs", "eval.env", "eval.env_kwargs", "eval.max_steps", "eval.every",
             "eval.episodes", "eval.score", "eval.reward", "seed")
+
+
+#: the secondary metric (PROTOCOL.md section 8): the mean score of the last LAST evaluations
+LAST = 10
+SECONDARY = f"mean of the last {LAST} evaluations"
+#: the comparisons PROTOCOL.md section 8 fixed before the runs: title, x and y as (algorithm, hparams, refine)
+PREREGISTERED = [
+    ("ours vs IQL (published, raw)", ("iql", "ours", "paper"), ("iql", "published", "none")),
+    ("refined vs raw, IQL with ours' settings", ("iql", "ours", "paper"), ("iql", "ours", "none")),
+    ("refined vs raw, IQL published", ("iql", "published", "paper"), ("iql", "published", "none")),
+    ("refined vs raw, BC (CORL's)", ("bc", "published", "paper"), ("bc", "published", "none")),
+]
+PREREGISTERED_AT = ("door-human-v0", "50k")
 
 
 def run_name(dataset: str, cell: str, budget: str) -> str:
@@ -84,7 +98,8 @@ def plan(budgets=None, datasets=None, cells=None, seeds=None, out: str = "runs")
         for dataset, dataset_cells in b["datasets"].items():
             if datasets and dataset not in datasets:
                 continue
-            for seed in seeds or first_free_seeds(dataset, choices, b["seeds"]):
+            count = b.get("seeds_of", {}).get(dataset, b["seeds"])
+            for seed in seeds or first_free_seeds(dataset, choices, count):
                 for cell in dataset_cells:
                     if cells and cell not in cells:
                         continue
@@ -144,6 +159,61 @@ def _ci(e) -> str:
     return f"{e.value:.1f} [{e.lo:.1f}, {e.hi:.1f}]"
 
 
+def _p(c: dict) -> str:
+    return f"{c['P'].value:.2f} [{c['P'].lo:.2f}, {c['P'].hi:.2f}]"
+
+
+def seed_list(runs) -> str:
+    return ", ".join(str(r.seed) for r in runs)
+
+
+def last_evaluations(run) -> float:
+    """The secondary metric (PROTOCOL.md section 8): the mean score of the run's last :data:`LAST` evaluations."""
+    return float(np.mean(run.values[-LAST:]))
+
+
+def compare(xs, ys, reps: int) -> dict | None:
+    """P(x > y) with its CI and the exact rank test's p, on the final score and on the secondary metric; None when
+    a side has one run (a bootstrap over one run says nothing about the spread)."""
+    if min(len(xs), len(ys)) < 2:
+        return None
+    out = {}
+    for metric, value in (("final", lambda r: r.final_value), ("last", last_evaluations)):
+        x, y = [value(r) for r in xs], [value(r) for r in ys]
+        out[metric] = {"P": probability_of_improvement(x, y, reps), "p": rank_test(x, y)}
+    return out
+
+
+def preregistered(here: dict, shown: str, budget: str, reps: int) -> list[str]:
+    """The four comparisons PROTOCOL.md section 8 fixed, read by its rule: shown when the CI of P excludes 0.5 and
+    the exact test's p < 0.05; a cell short of its planned seeds makes the table interim."""
+    rows, found = [], []
+    for title, x, y in PREREGISTERED:
+        xs, ys = here.get((shown, budget, *x), []), here.get((shown, budget, *y), [])
+        rows.append((title, xs, ys, compare(xs, ys, reps)))
+        if rows[-1][3]:
+            found.append(rows[-1][3]["final"]["p"])
+    adjusted = iter(holm(found)) if found else iter(())
+    want = BUDGETS[budget]["seeds_of"][shown]
+    interim = any(min(len(xs), len(ys)) < want for _, xs, ys, _ in rows)
+    lines = [f"### The pre-registered comparisons ({'interim: ' if interim else ''}PROTOCOL.md section 8)", "",
+             f"Planned: {want} seeds a cell. Primary: the final score; secondary: {SECONDARY}. Shown: the CI of P "
+             "excludes 0.5 and p < 0.05" + (". Interim: a cell has fewer than the planned seeds, so nothing is "
+                                           "decided here." if interim else "."), "",
+             "| comparison | seeds (x / y) | P(x > y) [95% CI] | p | Holm p | verdict | secondary: P [95% CI] | p |",
+             "|---|---|---:|---:|---:|---|---:|---:|"]
+    for title, xs, ys, c in rows:
+        if c is None:
+            lines.append(f"| {title} | {len(xs)} / {len(ys)} | – | – | – | too few runs | – | – |")
+            continue
+        f, last = c["final"], c["last"]
+        held = (f["P"].lo > 0.5 or f["P"].hi < 0.5) and f["p"] < 0.05
+        verdict = "interim" if interim else ("shown" if held else "not shown")
+        lines.append(f"| {title} | {len(xs)} / {len(ys)} | {_p(f)} | {f['p']:.3f} | {next(adjusted):.3f} | "
+                     f"{verdict} | {_p(last)} | {last['p']:.3f} |")
+    return [*lines, ""]
+
+
 def report(args) -> None:
     runs, left_out = leave_out_chosen(load_runs([STUDY / "runs"]), read_choices(CHOICES))
     summary, groups = [], {}
@@ -171,27 +241,30 @@ def report(args) -> None:
     for (shown, budget) in sorted({k[:2] for k in groups}, key=lambda k: (k[0], int(k[1][:-1]))):
         here = {k: v for k, v in groups.items() if k[:2] == (shown, budget)}
         lines += [f"## {shown}, {budget} steps", "",
-                  "| algorithm | settings | data | seeds | final score | IQM [95% CI] | mean score over evaluations |",
-                  "|---|---|---|---|---:|---:|---:|"]
+                  f"| algorithm | settings | data | seeds | final score | IQM [95% CI] | {SECONDARY} (IQM [95% CI]) "
+                  "| mean score over evaluations |", "|---|---|---|---|---:|---:|---:|---:|"]
         for (_, _, algorithm, hparams, refine), members in sorted(here.items(), key=lambda kv: kv[0][2:]):
             finals = [r.final_value for r in members]
-            lines.append(f"| {algorithm} | {hparams} | {refine} | {', '.join(str(r.seed) for r in members)} | "
+            lasts = [last_evaluations(r) for r in members]
+            lines.append(f"| {algorithm} | {hparams} | {refine} | {seed_list(members)} | "
                          f"{mean_std(finals)} | {_ci(cell_iqm(finals, args.reps))} | "
+                         f"{mean_std(lasts)} ({_ci(cell_iqm(lasts, args.reps))}) | "
                          f"{mean_std([np.mean(r.values) for r in members])} |")
         lines += ["", "P(refined > raw): the chance that a run on the refined data scores above a run on the raw "
-                  "data (ties count half), same algorithm and settings; 95% CI over the runs of both.", "",
-                  "| algorithm | settings | P(refined > raw) [95% CI] | seeds (refined / raw) |", "|---|---|---:|---|"]
+                  "data (ties count half), same algorithm and settings; 95% CI over the runs of both; p: the "
+                  "two-sided exact Mann-Whitney rank test (`benchmarks/PROTOCOL.md` section 8).", "",
+                  "| algorithm | settings | P(refined > raw) [95% CI] | p | seeds (refined / raw) |",
+                  "|---|---|---:|---:|---|"]
         for (_, _, algorithm, hparams, refine), refined in sorted(here.items(), key=lambda kv: kv[0][2:]):
             raw = here.get((shown, budget, algorithm, hparams, "none"))
             if refine != "paper" or not raw:
                 continue
-            if min(len(refined), len(raw)) < 2:  # a bootstrap over one run says nothing about the spread
-                shown_p = "– (one run on a side)"
-            else:
-                p = probability_of_improvement([r.final_value for r in refined], [r.final_value for r in raw], args.reps)
-                shown_p = f"{p.value:.2f} [{p.lo:.2f}, {p.hi:.2f}]"
+            c = compare(refined, raw, args.reps)
+            shown_p = f"{_p(c['final'])} | {c['final']['p']:.3f}" if c else "– (one run on a side) | –"
             lines.append(f"| {algorithm} | {hparams} | {shown_p} | {len(refined)} / {len(raw)} |")
         lines.append("")
+        if (shown, budget) == PREREGISTERED_AT:
+            lines += preregistered(here, shown, budget, args.reps)
         panels.setdefault(budget, []).extend(
             Group(shown, display_label(*k[2:]), members) for k, members in here.items())
     for budget, gs in panels.items():

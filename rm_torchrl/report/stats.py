@@ -283,3 +283,53 @@ def probability_of_improvement(x, y, reps: int = REPS) -> Estimate:
     95% CI over the runs of both (rliable), seeded on its own."""
     x, y = (np.asarray(v, dtype=float).reshape(-1, 1) for v in (x, y))
     return _estimates(_rliable(), {"x": (x, y)}, improvement, reps)["x"][0]
+
+
+#: random splits of the permutation test when the exact distribution has more than EXACT_SPLITS
+PERMUTATIONS = 200_000
+EXACT_SPLITS = 1_000_000
+
+
+def rank_test(x, y) -> float:
+    """The two-sided p of the Mann-Whitney rank test of ``x`` against ``y``, exact (``benchmarks/PROTOCOL.md``
+    section 8): without ties, U's exact distribution; with ties, the permutation test of U, over every split of
+    the pooled runs while they number at most :data:`EXACT_SPLITS`, else :data:`PERMUTATIONS` seeded splits.
+
+    >>> round(rank_test([5.0, 6.0, 7.0], [1.0, 2.0, 3.0]), 3)
+    0.1
+    """
+    from math import comb
+
+    from scipy import stats
+
+    x, y = (np.asarray(v, dtype=float).ravel() for v in (x, y))
+    if not (len(x) and len(y)) or not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise RMError(f"the rank test needs finite scores on both sides ({len(x)} and {len(y)} given)")
+    pooled = np.concatenate([x, y])
+    if len(np.unique(pooled)) == len(pooled):
+        return float(stats.mannwhitneyu(x, y, alternative="two-sided", method="exact").pvalue)
+    exact = comb(len(pooled), len(x)) <= EXACT_SPLITS
+
+    def u(a, b, axis):
+        return stats.mannwhitneyu(a, b, alternative="two-sided", method="asymptotic", axis=axis).statistic
+
+    result = stats.permutation_test((x, y), u, permutation_type="independent", alternative="two-sided",
+                                    vectorized=True, n_resamples=np.inf if exact else PERMUTATIONS,
+                                    rng=np.random.default_rng(SEED))
+    return float(result.pvalue)
+
+
+def holm(pvalues) -> list[float]:
+    """Holm's step-down adjustment of ``pvalues`` (same order): the family-wise error over the comparisons.
+
+    >>> holm([0.01, 0.04, 0.03])
+    [0.03, 0.06, 0.06]
+    """
+    p = np.asarray(pvalues, dtype=float)
+    order = np.argsort(p)
+    adjusted = np.empty_like(p)
+    running = 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (len(p) - rank) * p[i]))
+        adjusted[i] = running
+    return [round(float(v), 12) for v in adjusted]
