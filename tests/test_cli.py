@@ -604,3 +604,16 @@ def test_rm_graph_bad_order_is_one_line(capsys, order, message):
     code, out, err = run(capsys, "rm-graph", "--events", "door", "--order", order)
     assert code == 2 and out == ""
     assert error_line(err, "rm-graph") == message
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["train", "--help"], ["rm-graph", "--help"],
+                                  ["inspect", "--help"], ["refine", "--help"], ["report", "--help"]])
+def test_help_and_version_import_no_torch(argv):
+    """``rmrl --help`` answers in a fraction of a second: it builds the parser without torch (30 s on a busy
+    machine) or the training stack."""
+    code = ("import sys\nfrom rm_torchrl.cli.main import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n"
+            "    pass\nheavy = sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'tensordict', 'torchrl', "
+            "'h5py', 'minari', 'gymnasium'})\nprint('HEAVY', heavy)")
+    done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "HEAVY []", done.stdout[-500:]

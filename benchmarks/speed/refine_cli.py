@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from rm_torchrl.data.synthetic import write_door_like_hdf5
+from rm_torchrl.launch.processes import rmrl_command
 
 READ = """import sys, h5py, torch, tensordict, torchrl
 with h5py.File(sys.argv[1], "r") as f:
@@ -43,8 +44,8 @@ def main() -> None:
         for k in range(args.repeats):
             read.append(timed([sys.executable, "-c", READ, str(path)]))
             read_envs.append(timed([sys.executable, "-c", READ_ENVS, str(path)]))
-            refine.append(timed([sys.executable, "-m", "rm_torchrl.cli.main", "refine", "--dataset", str(path),
-                                 "--events", "door", "--alpha", "0.5", "--out", str(Path(tmp) / f"out{k}")]))
+            refine.append(timed(rmrl_command("refine", "--dataset", str(path),
+                                 "--events", "door", "--alpha", "0.5", "--out", str(Path(tmp) / f"out{k}"))))
     print(json.dumps({"transitions": args.transitions, "repeats": args.repeats,
                       "seconds": {"import_and_read": round(min(read), 2),
                                   "import_with_torchrl_envs_and_read": round(min(read_envs), 2),

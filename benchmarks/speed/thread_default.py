@@ -17,14 +17,15 @@ import time
 from pathlib import Path
 
 from rm_torchrl.train.threads import auto_threads, busy_cores, usable_cores
+from rm_torchrl.launch.processes import rmrl_command
 
 RECIPE = ["dataset=door-human-v0", "method=ours", "trainer.compile=true", "eval.env=", "trainer.checkpoint_every=100000"]
 
 
 def train(out: Path, name: str, threads: int, steps: int, log_every: int, wait: bool = True) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "rm_torchrl.cli.main", "train", *RECIPE, f"name={name}",
+    proc = subprocess.Popen(rmrl_command("train", *RECIPE, f"name={name}",
                              f"out={out}", f"trainer.threads={threads}", f"trainer.steps={steps}",
-                             f"trainer.log_every={log_every}", "--no-progress"],
+                             f"trainer.log_every={log_every}", "--no-progress"),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     if wait:
         _, err = proc.communicate()

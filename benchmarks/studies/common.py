@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rm_torchrl.launch.processes import rmrl_command
 from rm_torchrl.report.runs import load_runs, read_eval_csv
 from rm_torchrl.report.stats import REPS
 from rm_torchrl.run_format import run_identity
@@ -65,7 +66,7 @@ def mean_std(values) -> str:
 
 def rmrl(*argv: str, capture: bool = False) -> str:
     """Run ``rmrl ARGV`` in a child process (progress bars pass through to stderr)."""
-    cmd = [sys.executable, "-m", "rm_torchrl.cli.main", *argv]
+    cmd = rmrl_command(*argv)
     print("$ rmrl " + " ".join(argv), file=sys.stderr, flush=True)
     out = subprocess.run(cmd, check=True, text=True, stdout=subprocess.PIPE if capture else None)
     return out.stdout if capture else ""

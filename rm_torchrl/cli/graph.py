@@ -5,10 +5,6 @@ import argparse
 from pathlib import Path
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.events.spec import load_event_spec
-from rm_torchrl.files import WriteFailed, write_atomic
-from rm_torchrl.rm.diagram import to_dot, to_mermaid
-from rm_torchrl.rm.machine import EventOrderedRM
 
 
 HELP = "draw the event-ordered RM (Graphviz DOT or Mermaid)"
@@ -23,6 +19,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from rm_torchrl.events.spec import load_event_spec
+    from rm_torchrl.files import WriteFailed, write_atomic
+    from rm_torchrl.rm.diagram import to_dot, to_mermaid
+    from rm_torchrl.rm.machine import EventOrderedRM
+
     rm = EventOrderedRM(load_event_spec(args.events).names)
     order = None if getattr(args, "order", None) is None else args.order.split(",")
     text = (to_dot if args.format == "dot" else to_mermaid)(rm, order=order)

@@ -9,7 +9,7 @@ HELP = "write a D4RL HDF5 file as a local Minari dataset (atomic)"
 
 def add_arguments(p) -> None:
     """The flags of ``rmrl import-d4rl`` (for ``cli/main.py``)."""
-    from rm_torchrl.data.d4rl import EPISODE_ENDS
+    from rm_torchrl.data.episode_ends import EPISODE_ENDS
 
     p.add_argument("file", metavar="FILE", help="a D4RL .hdf5 file (observations, actions, rewards, terminals, timeouts), or "
                         "embedded:door-human-v0.hdf5 for the one shipped in the package")

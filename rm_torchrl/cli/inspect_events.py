@@ -6,12 +6,7 @@ import json
 import sys
 
 from rm_torchrl.cli.options import add_source
-
-from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
-from rm_torchrl.refine.shortest import check_alpha
-from rm_torchrl.events.spec import load_event_spec
-from rm_torchrl.events.stats import event_statistics, format_event_table
 
 
 HELP = "per-event statistics of a dataset"
@@ -28,6 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    from rm_torchrl.data.sources import load_dataset
+    from rm_torchrl.refine.shortest import check_alpha
+    from rm_torchrl.events.spec import load_event_spec
+    from rm_torchrl.events.stats import event_statistics, format_event_table
+
     spec = load_event_spec(args.events)
     if args.plot and not args.plot.endswith(".png"):
         raise RMError(f"--plot writes a PNG file, got {args.plot!r}")

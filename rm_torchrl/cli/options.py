@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from rm_torchrl.data.d4rl import EPISODE_ENDS
+from rm_torchrl.data.episode_ends import EPISODE_ENDS
 
 
 def add_source(p: argparse.ArgumentParser, required: bool = True) -> None:

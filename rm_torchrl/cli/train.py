@@ -26,7 +26,7 @@ class TrainHelp(argparse.Action):
     def __call__(self, parser, namespace, values, option_string=None):
         import textwrap
 
-        from rm_torchrl.train.recipe import RECIPES
+        from rm_torchrl.train.recipes_root import RECIPES
 
         lines = [f"Options come from the recipes folder {RECIPES} (a recipe file given first replaces "
                  "train.yaml):"]

@@ -8,10 +8,10 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from rm_torchrl.data.episode_ends import EPISODE_ENDS
 from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
 
-EPISODE_ENDS = ("auto", "terminals", "timeouts", "both")
 _JUMP = 10.0  # a real episode boundary moves the observation this many median steps at least
 
 

@@ -82,11 +82,20 @@ class D4RLReward(Transform):
 
     Example:
         >>> from torchrl.envs import GymEnv, TransformedEnv
+        >>> _ = import_gymnasium_robotics(quiet=True)  # registers the Adroit envs
         >>> env = TransformedEnv(GymEnv("AdroitHandDoor-v1"), D4RLReward("door"))
         >>> rollout = env.rollout(5)  # rollout["next", "reward"] is D4RL's door reward
+        >>> rollout["next", "reward"].shape
+        torch.Size([5, 1])
 
     Also works outside an env, on transitions with ``("next", observation_key)`` and
-    ``("next", reward_key)`` (a replay buffer of v1 rollouts).
+    ``("next", reward_key)`` (a replay buffer of v1 rollouts), and on one step's root entries:
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> step = TensorDict({"observation": torch.zeros(2, 39), "reward": torch.ones(2, 1)}, batch_size=[2])
+        >>> D4RLReward("door")(step)["reward"].squeeze(-1)
+        tensor([1., 1.])
     """
 
     def __init__(self, task: str, observation_key="observation", reward_key="reward"):
@@ -105,11 +114,23 @@ class D4RLReward(Transform):
         distance = distance.reshape(reward.shape).to(reward.dtype)
         return reward - CORRECTION * distance
 
-    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        """Rewrites the root reward from the root observation: an env step's output, or one step's TensorDict."""
+        missing = [k for k in (self.observation_key, self.reward_key) if k not in next_tensordict.keys(True)]
+        if missing:
+            raise RMError(f"D4RLReward({self.task!r}): the transition has no {missing[0]!r} entry (it reads "
+                          f"{self.observation_key!r} and {self.reward_key!r}, at the root or under 'next')")
         reward = next_tensordict.get(self.reward_key)
         next_tensordict.set(self.reward_key, self._d4rl(next_tensordict.get(self.observation_key), reward))
         return next_tensordict
 
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return self._call(next_tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        self._step(tensordict, tensordict.get("next"))
-        return tensordict
+        """Transitions (``("next", reward)``, a replay buffer of rollouts) or a step's own root entries."""
+        nested = tensordict.get("next", None)
+        if isinstance(nested, TensorDictBase) and self.reward_key in nested.keys(True):
+            self._call(nested)
+            return tensordict
+        return self._call(tensordict)

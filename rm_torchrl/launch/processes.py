@@ -18,6 +18,19 @@ from rm_torchrl.progress import progress_bar
 from rm_torchrl.train.recipe import load_recipe, split_recipe_args
 
 
+def rmrl_command(*argv: str) -> list[str]:
+    """``rmrl ARGV`` as a child process that runs this very package.
+
+    ``python -m rm_torchrl.cli.main`` would import whichever ``rm_torchrl`` the child's working directory holds
+    first: run from a checkout after ``pip install .``, the children would train the checkout while the launcher
+    runs the installed copy, and their recipes (data paths inside the package) would differ from the launcher's.
+    """
+    home = str(Path(__file__).resolve().parents[2])
+    boot = (f"import sys; sys.path.insert(0, {home!r}); sys.argv[0] = 'rmrl'; "
+            "from rm_torchrl.cli.main import main; sys.exit(main())")
+    return [sys.executable, "-c", boot, *argv]
+
+
 def run_grid(runs: list[tuple[str | None, list[str]]], jobs: int) -> None:
     """``(recipe or None, overrides)`` runs that are not one sweep, with a multirun's policy: finished
     runs are skipped, killed ones resumed, failed ones not retried; every recipe is checked first.
@@ -94,7 +107,7 @@ def _start(argv: list[str], label: str, threads: int) -> tuple[subprocess.Popen,
     passed on line by line under ``label``."""
     own = [a for a in argv if a.startswith("trainer.threads=")]
     n = int(own[-1].split("=", 1)[1] or 0) if own else threads
-    cmd = [sys.executable, "-m", "rm_torchrl.cli.main", "train", *argv, *([] if own else [f"trainer.threads={threads}"])]
+    cmd = rmrl_command("train", *argv, *([] if own else [f"trainer.threads={threads}"]))
     env = {**os.environ, "OMP_NUM_THREADS": str(n)} if n > 0 else None
     proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True, preexec_fn=die_with_parent)

@@ -31,19 +31,9 @@ from rm_torchrl.errors import RMError, read_yaml, yaml_problem
 from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.run_format import run_label, upgrade_recipe
 from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, Recipe, check_seed
+from rm_torchrl.train.recipes_root import RECIPES
 
 
-
-def _recipes_root() -> Path:
-    """The recipes folder: ``rm_torchrl/recipes`` in an installed wheel (pyproject maps the top-level folder
-    there), else the checkout's top-level ``recipes/`` (an editable install or a plain checkout)."""
-    package = Path(__file__).resolve().parents[1]
-    installed = package / "recipes"
-    return installed if (installed / "train.yaml").is_file() else package.parent / "recipes"
-
-
-#: The package's recipes folder (the config root of ``rmrl train dataset=... method=...``).
-RECIPES = _recipes_root()
 SCHEMA = "rmrl_schema"  # a recipe's defaults list starts with it to get typed, complete sections
 #: Top-level entries that are values, not config groups (``dataset`` and ``method`` are groups).
 _VALUE_KEYS = tuple(f.name for f in dataclasses.fields(Recipe) if f.name != "method")
