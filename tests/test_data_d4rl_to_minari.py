@@ -465,3 +465,31 @@ def test_rmrl_import_then_refine(cache, tmp_path, capsys):
     assert main(["refine", "--dataset", "tiny/cli-v0", "--events", str(spec), "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["stages"]["original"] == 9
+
+
+@pytest.mark.slow
+def test_minari_replay_buffer_is_the_data_and_refines_and_torchrls_zeros_are_named(cache, tmp_path):
+    """The documented way (``minari_replay_buffer``) from a local Minari dataset that ``import-d4rl`` wrote to
+    a refined TorchRL replay buffer, offline; TorchRL's own reader without the fix yields zeros, which the
+    first stage names instead of failing on an event that "already holds"."""
+    from torchrl.data.datasets import MinariExperienceReplay
+
+    from rm_torchrl.data import minari_replay_buffer
+    from rm_torchrl.data.embedded import embedded_file
+    from rm_torchrl.refine import LabelRM, make_refine_pipeline, refine_replay_buffer
+
+    door = embedded_file("door-human-v0.hdf5")
+    dataset_id = import_d4rl(door, "d4rl/door-human-v0", env_id="AdroitHandDoor-v1")
+    before = sorted(p.relative_to(cache) for p in cache.rglob("*"))
+    buffer = minari_replay_buffer(dataset_id, download=False)
+    assert sorted(p.relative_to(cache) for p in cache.rglob("*")) == before  # nothing written into the dataset
+    assert len(buffer) == 6704
+    assert_same_transitions(buffer[:].exclude("index"), load_d4rl_hdf5(door))
+    refined = refine_replay_buffer(buffer, make_refine_pipeline("door", alpha=0.5))
+    assert len(refined) == 2261  # Table 2's door-human-v0 row
+
+    raw = MinariExperienceReplay(dataset_id, batch_size=4, root=tmp_path / "torchrl", download=True,
+                                 load_from_local_minari=True)[:]
+    assert not raw["observation"].any()  # TorchRL 0.14's reader: if this fails, it was fixed upstream
+    with pytest.raises(RMError, match="every observation in the data is zero.*minari_replay_buffer"):
+        LabelRM("door")(raw.reshape(-1))

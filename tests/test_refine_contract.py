@@ -161,3 +161,70 @@ def test_forward_compose_and_replay_buffer_agree(case):
     buffer.extend(td)
     buffer.append_transform(copy.deepcopy(stage))
     _same(buffer.sample().exclude("index"), expected)
+
+
+def test_as_a_model_and_cloned(case):
+    """TorchRL's model and clone/state_dict checks: in ``nn.Sequential``, and a clone loaded with the stage's
+    state refines alike."""
+    from torch import nn
+
+    stage, td, upstream = case
+    expected, _ = stage.refine(td, upstream)
+    _same(nn.Sequential(copy.deepcopy(stage), nn.Identity())(td), expected)
+    twin = stage.clone()
+    twin.load_state_dict(stage.state_dict())
+    _same(twin(td), expected)
+
+
+def test_in_a_transformed_env_it_is_one_line(case):
+    """Env modes (single env, batched envs) are refused when the env first calls it, naming RMEnvTransform."""
+    from torchrl.envs import GymEnv, TransformedEnv
+
+    stage, _, _ = case
+    env = TransformedEnv(GymEnv("Pendulum-v1"), copy.deepcopy(stage))
+    with pytest.raises(RMError, match="cannot run inside an environment; use RMEnvTransform") as err:
+        env.reset()
+    _one_line(err)
+
+
+@pytest.mark.parametrize("cls", [c for c in STAGES if "episode_key" in inspect.signature(c).parameters
+                                 and c.__name__ in ("LabelRM", "SplitGroup")], ids=lambda c: c.__name__)
+def test_slices_of_episodes_are_refused(cls):
+    """A SliceSampler's slices look like short episodes: where the data marks first steps (``is_init``, as the
+    readers write it) a stage that needs whole episodes refuses them instead of labelling each slice from u_I."""
+    from torchrl.data import SliceSampler
+
+    from rm_torchrl.segments import INIT_KEY, run_starts
+
+    stage, td, upstream = _case(cls)
+    td = td.clone().set(INIT_KEY, run_starts(td["episode"]).unsqueeze(-1))
+    stage.refine(td, upstream)  # whole episodes pass
+    buffer = ReplayBuffer(storage=LazyTensorStorage(td.batch_size[0]), batch_size=4,  # stages may drop rows
+                          sampler=SliceSampler(slice_len=2, traj_key="episode", strict_length=False))
+    buffer.extend(td)
+    buffer.append_transform(copy.deepcopy(stage))
+    torch.manual_seed(0)
+    with pytest.raises(RMError, match="starts mid-episode .* refine_replay_buffer") as err:
+        for _ in range(20):  # a draw of slices that all begin their episodes would pass: it is right then
+            buffer.sample()
+    _one_line(err)
+
+
+def test_the_readers_mark_first_steps_so_a_slice_sampled_d4rl_file_is_refused():
+    """The issue's case: D4RL's door-human-v0 as read, in a TensorDictReplayBuffer with SliceSampler, LabelRM
+    appended: refused, where it used to label each 64-row slice as an episode start."""
+    from torchrl.data import SliceSampler
+
+    from rm_torchrl.data import load_d4rl_hdf5
+    from rm_torchrl.data.embedded import embedded_file
+    from rm_torchrl.refine import LabelRM
+    from rm_torchrl.segments import INIT_KEY
+
+    data = load_d4rl_hdf5(embedded_file("door-human-v0.hdf5"))
+    assert int(data[INIT_KEY].sum()) == int(data["episode"].max()) + 1 == 25
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(len(data)), batch_size=256,
+                                    sampler=SliceSampler(slice_len=64, traj_key="episode"))
+    buffer.extend(data)
+    buffer.append_transform(LabelRM("door"))
+    with pytest.raises(RMError, match="starts mid-episode"):
+        buffer.sample()

@@ -2,7 +2,8 @@
 
 The readers are imported when first used: ``rmrl --help`` reads this package's option names without torch.
 """
-_HOMES = {"load_d4rl_hdf5": "d4rl", "load_dataset": "sources", "read_refined": "store", "write_refined": "store"}
+_HOMES = {"load_d4rl_hdf5": "d4rl", "load_dataset": "sources", "load_minari": "minari",
+          "minari_replay_buffer": "minari", "read_refined": "store", "write_refined": "store"}
 __all__ = sorted(_HOMES)
 
 

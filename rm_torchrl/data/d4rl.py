@@ -11,6 +11,7 @@ from tensordict import TensorDict
 from rm_torchrl.data.episode_ends import EPISODE_ENDS
 from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
+from rm_torchrl.segments import INIT_KEY, run_starts
 
 _JUMP = 10.0  # a real episode boundary moves the observation this many median steps at least
 
@@ -160,4 +161,5 @@ def load_d4rl_hdf5(path: str | Path, episode_ends: str = "auto") -> TensorDict:
         batch_size=[rows.size],
     )
     _, td["episode"] = torch.unique_consecutive(td["episode"], return_inverse=True)
+    td[INIT_KEY] = run_starts(td["episode"]).unsqueeze(-1)
     return td

@@ -21,10 +21,12 @@ from unittest import mock
 import minari
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.data.datasets import MinariExperienceReplay, minari_data
 
 from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
+from rm_torchrl.segments import INIT_KEY, run_starts
 
 _BOOKKEEPING = ("index", "_weight", "done", "terminated", "truncated")
 
@@ -69,6 +71,29 @@ def load_minari(dataset_id: str, *, download: bool | None = None) -> TensorDict:
     data = data.exclude(*_BOOKKEEPING).filter_non_tensor_data()
     require_finite(data, dataset_id)
     return _canonical(data)
+
+
+def minari_replay_buffer(dataset_id: str, batch_size: int = 256, *, download: bool | None = None, storage=None,
+                         **buffer_kwargs) -> TensorDictReplayBuffer:
+    """A Minari dataset (local, or downloaded) in a TorchRL ``TensorDictReplayBuffer``, one row per transition.
+
+    The documented way in: :func:`load_minari` reads it (TorchRL's own reader, fixed, into a private folder that
+    never touches the dataset, offline when the id is local), with ``episode`` and TorchRL's ``is_init`` marks
+    that the refinement stages check; ``refine_replay_buffer(buffer, make_refine_pipeline(...))`` refines it.
+    ``storage`` defaults to a ``LazyTensorStorage`` of the dataset's size; other keywords go to the buffer
+    (``sampler``, ``transform``, ...).
+
+        >>> buffer = minari_replay_buffer("D4RL/door/human-v2", download=False)  # doctest: +SKIP
+        >>> buffer.sample()["observation"].shape  # doctest: +SKIP
+        torch.Size([256, 39])
+    """
+    from torchrl.data import LazyTensorStorage
+
+    data = load_minari(dataset_id, download=download)
+    buffer = TensorDictReplayBuffer(storage=storage if storage is not None else LazyTensorStorage(len(data)),
+                                    batch_size=batch_size, **buffer_kwargs)
+    buffer.extend(data)
+    return buffer
 
 
 @contextmanager
@@ -127,6 +152,7 @@ def _canonical(data: TensorDictBase) -> TensorDict:
     for key in ("observation", "action", ("next", "observation")):
         data.set(key, _to_float32(data.get(key)))
     data.set("episode", data.get("episode").reshape(n).to(torch.int64))
+    data.set(INIT_KEY, run_starts(data.get("episode")).unsqueeze(-1))
     data.set(("next", "reward"), data.get(("next", "reward")).reshape(n, 1).to(torch.float32))
     terminated = data.get(("next", "terminated")).reshape(n, 1).to(torch.bool)
     truncated = data.get(("next", "truncated")).reshape(n, 1).to(torch.bool)

@@ -14,6 +14,7 @@ import torch
 from tensordict import TensorDict
 
 from rm_torchrl.errors import RMError
+from rm_torchrl.segments import INIT_KEY
 
 OBS_DIM, ACTION_DIM = 39, 28
 
@@ -58,6 +59,7 @@ def make_door_like(
             "observation": obs[:, :-1],
             "action": actions,
             "episode": episode,
+            INIT_KEY: torch.zeros_like(last).index_fill_(1, torch.tensor([0]), True),
             "next": {
                 "observation": obs[:, 1:],
                 "reward": reward,

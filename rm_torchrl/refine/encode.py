@@ -75,5 +75,12 @@ class RMEncoding(Transform):
                                                  dtype=torch.float32, device=source.device)
         return observation_spec
 
+    def transform_output_spec(self, output_spec: Composite) -> Composite:
+        """Only the observation spec changes; TorchRL's default would also ask a spec of the offline
+        ``("next", encoding_key)``, which an env's step writes at the root."""
+        output_spec = output_spec.clone()
+        output_spec["full_observation_spec"] = self.transform_observation_spec(output_spec["full_observation_spec"])
+        return output_spec
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(events={self.rm.event_names}, encoding={self.encoding!r})"

@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.base import DatasetTransform
-from rm_torchrl.segments import episode_runs
+from rm_torchrl.segments import INIT_KEY, episode_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
@@ -33,9 +33,14 @@ class LabelRM(DatasetTransform):
 
     def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         episode = td.get(self.episode_key)
-        starts = episode_runs(episode)
+        starts = episode_runs(episode, td.get(INIT_KEY, None))
         if "next" not in td.keys():
             raise RMError("LabelRM needs the next observations under ('next', ...) in the dataset")
+        observation = td.get("observation", None)
+        if isinstance(observation, torch.Tensor) and not observation.any():
+            raise RMError("every observation in the data is zero: TorchRL 0.14's MinariExperienceReplay reads zeros "
+                          "(read the dataset with rm_torchrl.data.minari_replay_buffer, or inside "
+                          "rm_torchrl.data.minari.fixed_minari_reader())")
         now = self.spec(td)
         fired = self.spec(td.get("next")) & ~now
         start_rows = starts.nonzero().squeeze(-1)

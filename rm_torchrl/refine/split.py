@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.base import DatasetTransform, take_rows
 from rm_torchrl.refine.label import LabelRM
-from rm_torchrl.segments import episode_runs, rows_of_runs
+from rm_torchrl.segments import INIT_KEY, episode_runs, rows_of_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
@@ -32,7 +32,7 @@ class SplitGroup(DatasetTransform):
     def _refine(self, td: TensorDictBase, upstream) -> tuple[TensorDictBase, dict]:
         state, next_state = td.get(self.rm_key), td.get(("next", self.rm_key))
         rm = EventOrderedRM(state.shape[-1])
-        episode_start = episode_runs(td.get(self.episode_key))
+        episode_start = episode_runs(td.get(self.episode_key), td.get(INIT_KEY, None))
         is_event = (state != next_state).any(-1)
         event_rows = is_event.nonzero().squeeze(-1)
         if event_rows.numel() == 0:
