@@ -17,7 +17,7 @@ from torchrl.data import Binary, Bounded, Composite
 from torchrl.envs.transforms import Transform
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.events import Event, EventSpec, load_event_spec
+from rm_torchrl.events import CompoundEvent, Event, EventSpec, load_event_spec
 from rm_torchrl.rm import EventOrderedRM
 
 NestedKey = Union[str, tuple]
@@ -114,8 +114,9 @@ class RMEnvTransform(Transform):
                 )
             self._key_map[sk_t] = ek_t
         self._spec_keys = spec_keys
-        decl = [i for i, e in enumerate(spec.events) if isinstance(e, Event)]
-        other = [i for i, e in enumerate(spec.events) if not isinstance(e, Event)]
+        declared = (Event, CompoundEvent)  # read keys the env may name otherwise (key_map)
+        decl = [i for i, e in enumerate(spec.events) if isinstance(e, declared)]
+        other = [i for i, e in enumerate(spec.events) if not isinstance(e, declared)]
         self._decl_idx, self._call_idx = decl, other
         self._decl_spec = EventSpec([spec.events[i] for i in decl], [spec.names[i] for i in decl], spec.source) if decl else None
         self._call_spec = EventSpec([spec.events[i] for i in other], [spec.names[i] for i in other], spec.source) if other else None

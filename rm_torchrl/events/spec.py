@@ -8,7 +8,16 @@ them to a scalar, and compares that scalar with a threshold::
       - {name: handle, key: observation, slice: [35, 38], reduce: norm, op: "<", value: 0.1}
       - {name: opened, key: observation, index: 28, op: ">", value: 0.2}
 
-Plain Python callables ``f(observation_td) -> bool tensor (...)`` can stand in for any event.
+An event may also combine comparisons: ``all`` (every one holds) or ``any`` (one at least), each part a
+comparison of the same form without a name, or itself an ``all``/``any``::
+
+      - {name: upright_and_slow, all: [{index: 0, op: ">", value: 0.9}, {index: 2, op: "<", value: 0.5}]}
+
+Plain Python callables can stand in for any event, declared ones beside them
+(``EventSpec([f, Event.from_dict(...)], names)``). The contract: ``f(td) -> torch.BoolTensor`` of shape
+``td.batch_size``, where ``td`` holds the state's entries at the root (``observation``, and any other key of the
+data or the env; offline the ``next`` state is passed the same way, as its own TensorDict). ``f`` must be
+vectorised over the batch and read only the state (no history): the RM holds the history.
 """
 from __future__ import annotations
 
@@ -37,6 +46,8 @@ _REDUCTIONS = {
     "sum": lambda x: x.sum(-1),
 }
 _FIELDS = {"name", "key", "index", "slice", "target", "target_key", "reduce", "op", "value"}
+#: ``all``/``any`` events: how many levels of parts they may nest
+MAX_DEPTH = 8
 
 
 def _is_int(x) -> bool:
@@ -70,13 +81,16 @@ class Event:
     value: float = 0.0
 
     @classmethod
-    def from_dict(cls, d: dict, position: int) -> "Event":
+    def from_dict(cls, d: dict, position: int) -> "Event | CompoundEvent":
+        """One event from its mapping: a comparison, or an ``all``/``any`` of comparisons."""
         where = f"event #{position + 1}"
         if not isinstance(d, dict):
             raise RMError(f"{where}: expected a mapping with name/key/op/value, got {d!r}")
         name = d.get("name")
         if not isinstance(name, str) or not name:
             raise RMError(f"{where}: every event needs a non-empty string 'name'")
+        if "all" in d or "any" in d:
+            return CompoundEvent.from_dict(d)
         where = f"event {name!r}"
         unknown = set(d) - _FIELDS
         if unknown:
@@ -180,6 +194,55 @@ class Event:
         return _OPS[self.op](self.feature(obs) if feature is None else feature, self.value)
 
 
+@dataclass(frozen=True)
+class CompoundEvent:
+    """``all`` (every part holds) or ``any`` (one part at least) of comparisons (or of nested compounds)."""
+
+    name: str
+    mode: str
+    parts: tuple
+
+    @classmethod
+    def from_dict(cls, d: dict, depth: int = 0) -> "CompoundEvent":
+        name = d["name"]
+        where = f"event {name!r}"
+        modes = [m for m in ("all", "any") if m in d]
+        if len(modes) != 1:
+            raise RMError(f"{where}: give either 'all' or 'any', not both")
+        mode = modes[0]
+        if set(d) - {"name", mode}:
+            raise RMError(f"{where}: an '{mode}' event holds only 'name' and '{mode}', got {sorted(set(d) - {'name'})}")
+        if depth >= MAX_DEPTH:
+            raise RMError(f"{where}: 'all'/'any' nested deeper than {MAX_DEPTH} levels")
+        parts = d[mode]
+        if not isinstance(parts, list) or not parts:
+            raise RMError(f"{where}: '{mode}' must be a non-empty list of comparisons")
+        built = []
+        for i, part in enumerate(parts):
+            if not isinstance(part, dict):
+                raise RMError(f"{where}: part {i + 1} of '{mode}' must be a mapping, got {part!r}")
+            if "name" in part:
+                raise RMError(f"{where}: part {i + 1} of '{mode}' has a name; only the event itself is named")
+            part = {**part, "name": f"{name}[{i + 1}]"}
+            built.append(cls.from_dict(part, depth + 1) if ("all" in part or "any" in part)
+                         else Event.from_dict(part, i))
+        return cls(name=name, mode=mode, parts=tuple(built))
+
+    @property
+    def keys(self) -> list[tuple]:
+        """The keys its comparisons read."""
+        out = []
+        for part in self.parts:
+            for k in (part.keys if isinstance(part, CompoundEvent) else [part.key, part.target_key]):
+                if k is not None and k not in out:
+                    out.append(k)
+        return out
+
+    def __call__(self, obs: TensorDictBase) -> torch.Tensor:
+        held = torch.stack([part(obs) for part in self.parts], -1)
+        return held.all(-1) if self.mode == "all" else held.any(-1)
+
+
 def _get(obs: TensorDictBase, key: tuple, event: str) -> torch.Tensor:
     try:
         x = obs.get(key if len(key) > 1 else key[0])
@@ -248,7 +311,8 @@ class EventSpec:
         """Observation keys read by the declarative events (callables read what they like)."""
         out = []
         for e in self.events:
-            for k in (getattr(e, "key", None), getattr(e, "target_key", None)):
+            read = e.keys if isinstance(e, CompoundEvent) else (getattr(e, "key", None), getattr(e, "target_key", None))
+            for k in read:
                 if k is not None and k not in out:
                     out.append(k)
         return out

@@ -11,6 +11,10 @@ from rm_torchrl.segments import INIT_KEY, episode_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 
+#: what RMEnvTransform writes beside the RM state online (its default keys), dropped from collected data
+ONLINE_KEYS = ("rm_holding", "rm_encoding", ("next", "rm_holding"), ("next", "rm_encoding"))
+
+
 class LabelRM(DatasetTransform):
     """Writes ``rm_state`` and ``("next", "rm_state")`` (LongTensor slots) for every transition.
 
@@ -70,6 +74,7 @@ class LabelRM(DatasetTransform):
         at_point = torch.where(is_start.unsqueeze(-1), 0, torch.cat([after.new_zeros(1, n), after[:-1]]))
         pieces = torch.stack([at_point, after], 1).flatten(0, 1)
         state = pieces.repeat_interleave(torch.stack([torch.ones_like(span), span - 1], 1).flatten(), 0, output_size=rows)
+        td = td.exclude(*ONLINE_KEYS)  # RMEnvTransform's columns of collected data: the relabelling changes them
         td.set(self.out_keys[0], state)
         td.set(self.out_keys[1], next_state)
         held = [name for name, h in zip(self.spec.names, now[start_rows].all(0).tolist()) if h]

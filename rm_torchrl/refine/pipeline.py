@@ -168,12 +168,13 @@ def _key(key) -> tuple:
 
 
 def refine(data: TensorDictBase, events: EventSpec | str, alpha: float = 1.0, constraints: Iterable = (),
-           reuse: bool = False):
+           reuse: bool = False, episode_key: str | tuple = "episode"):
     """Refine a flat dataset of transitions; returns ``(refined, report)``. ``data`` is not modified.
 
     ``reuse``: also bring back the sub-trajectories the splice abandons (:class:`ReuseAbandoned`).
+    ``episode_key``: the column of episode ids (a collector's ``("collector", "traj_ids")``, say).
     """
-    pipeline = make_refine_pipeline(events, alpha, constraints, reuse=reuse)
+    pipeline = make_refine_pipeline(events, alpha, constraints, episode_key=episode_key, reuse=reuse)
     refined, stats = run_pipeline(pipeline, data)
     return refined, RefineReport.from_stats(stats)
 

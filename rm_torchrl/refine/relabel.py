@@ -55,7 +55,7 @@ class CounterfactualRelabel(DatasetTransform):
         td.set(("next", "terminated"), terminated)
         td.set(("next", "truncated"), truncated)
         td.set(("next", "done"), terminated | truncated)
-        if self.episode_key in td.keys():
+        if self.episode_key in td.keys(include_nested=True):
             td.set("source_episode", td.get(self.episode_key))
         td.set(self.episode_key, run_index(starts))
         return td, {"episodes": int(starts.sum())}
