@@ -81,11 +81,8 @@ def minari_replay_buffer(dataset_id: str, batch_size: int = 256, *, download: bo
     never touches the dataset, offline when the id is local), with ``episode`` and TorchRL's ``is_init`` marks
     that the refinement stages check; ``refine_replay_buffer(buffer, make_refine_pipeline(...))`` refines it.
     ``storage`` defaults to a ``LazyTensorStorage`` of the dataset's size; other keywords go to the buffer
-    (``sampler``, ``transform``, ...).
-
-        >>> buffer = minari_replay_buffer("D4RL/door/human-v2", download=False)  # doctest: +SKIP
-        >>> buffer.sample()["observation"].shape  # doctest: +SKIP
-        torch.Size([256, 39])
+    (``sampler``, ``transform``, ...). ``minari_replay_buffer("D4RL/door/human-v2").sample()`` is a batch of 256;
+    the README's Minari block runs it on a dataset ``rmrl import-d4rl`` writes.
     """
     from torchrl.data import LazyTensorStorage
 

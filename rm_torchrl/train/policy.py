@@ -1,11 +1,7 @@
 """Trained policies out of run directories: a TorchRL module and the evaluation env it was trained for.
 
-    >>> from rm_torchrl import load_policy
-    >>> loaded = load_policy("runs/door-human-v0-ours-seed0")  # doctest: +SKIP
-    >>> env = loaded.make_env()  # doctest: +SKIP
-    >>> rollout = env.rollout(200, loaded.policy)  # doctest: +SKIP
-
-The env carries the run's transforms (step limit, D4RL's reward where the v1 env's differs, the RM
+``load_policy("runs/door-human-v0-ours-seed0").make_env().rollout(200, loaded.policy)``: the README's block on
+trained policies shows it on a run the tests train. The env carries the run's transforms (step limit, D4RL's reward where the v1 env's differs, the RM
 env transform with the run's event spec and encoding, the training data's observation
 normalisation), so the policy sees what it was trained on. The policy acts deterministically (the
 mean action) unless an exploration type says otherwise.

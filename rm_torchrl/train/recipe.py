@@ -6,9 +6,9 @@ composition in a file, and a run's own ``recipe.yaml`` (fully resolved) loads as
 use Hydra's grammar (``optim.weight_decay_q=1e-3``, ``method=iql``); a value override of a key the
 recipe does not spell out is accepted as long as the schema has it.
 
-    >>> recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "seed=1"])  # doctest: +SKIP
-    >>> recipe.run_dir  # doctest: +SKIP
-    PosixPath('runs/door-human-v0-ours-seed1')
+    >>> recipe = load_recipe(None, ["dataset=door-human-v0", "method=ours", "seed=1"])
+    >>> recipe.run_dir.as_posix()
+    'runs/door-human-v0-ours-seed1'
 """
 from __future__ import annotations
 
