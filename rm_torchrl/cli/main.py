@@ -94,13 +94,13 @@ def _terminate(signum, frame):
 def main(argv: list[str] | None = None) -> int:
     from rm_torchrl.env_vars import check_minari_path, check_mujoco_gl
 
-    args = build_parser().parse_args(argv)  # --help and --version exit here, having imported no library
-    try:
+    try:  # before the parser imports the commands' modules, some of which import MuJoCo
         check_mujoco_gl()
         check_minari_path()
     except RMError as err:
         print(f"rmrl: error: {err}", file=sys.stderr)
         return 2
+    args = build_parser().parse_args(argv)  # --help and --version exit here, having imported no torch
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)  # the trainer checkpoints on it instead, inside its loop
     try:
