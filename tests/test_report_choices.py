@@ -51,11 +51,23 @@ def test_first_free_seeds_skip_the_seeds_a_choice_used():
         ("door-human-v0", 0): CHOICE["what"], ("door-human-v0", 2): CHOICE["what"], ("door-human-v0", 5): "other"}
 
 
+def test_an_exempt_choice_is_recorded_but_leaves_no_seed_out(tmp_path):
+    exempt = dict(CHOICE, what="the data", seeds=[1, 3], leaves_out=False, exempt="PROTOCOL.md section 3")
+    for seed in range(4):
+        run_dir(tmp_path / "runs", "door-human-v0", seed)
+    choices = read_choices(write(tmp_path, [CHOICE, exempt]))
+    kept, lines = leave_out_chosen(load_runs([tmp_path / "runs"]), choices)
+    assert sorted(r.seed for r in kept) == [1, 3] and len(lines) == 2
+    assert first_free_seeds("door-human-v0", choices, 2) == [1, 3]
+
+
 @pytest.mark.parametrize("content, problem", [
     ("[{", "is not valid JSON"), ({"a": 1}, "must hold a JSON list of choices, got dict"),
     ([{k: v for k, v in CHOICE.items() if k != "criterion"}], r"choice 0: missing \['criterion'\]"),
     ([dict(CHOICE, seeds=[0, "1"])], "choice 0: dataset must be a name and seeds a list of integers"),
     ([dict(CHOICE, seeds=3)], "choice 0: dataset must be a name and seeds a list of integers"),
+    ([dict(CHOICE, leaves_out="no")], "choice 0: leaves_out must be true or false"),
+    ([dict(CHOICE, leaves_out=False)], "choice 0: leaves_out is false, so exempt must name the rule"),
 ])
 def test_a_bad_choices_file_is_one_line(tmp_path, content, problem):
     with pytest.raises(RMError, match=problem):

@@ -3,7 +3,9 @@
 A choices file lists every setting chosen by looking at evaluations: a JSON list of objects with ``what``,
 ``options``, ``dataset``, ``seeds``, ``steps``, ``criterion`` and ``chosen``. A reported number never comes from
 a run whose (dataset, seed) a choice used, whatever its method:
-:func:`leave_out_chosen` splits such runs off, each with the choice that used it. The dataset is the run's
+:func:`leave_out_chosen` splits such runs off, each with the choice that used it. An entry with
+``"leaves_out": false`` is recorded but leaves no seed out; it must say in ``exempt`` which rule of the
+protocol exempts it. The dataset is the run's
 ``data.name`` (:func:`~rm_torchrl.report.runs.dataset_label`).
 
     >>> choices = [{"what": "optim.weight_decay_q", "options": [0, 1e-3], "dataset": "door-human-v0",
@@ -37,13 +39,19 @@ def read_choices(path: str | os.PathLike) -> list[dict]:
         if not isinstance(choice["dataset"], str) or not isinstance(seeds, list) or not all(
                 isinstance(s, int) and not isinstance(s, bool) for s in seeds):
             raise RMError(f"{path}, choice {i}: dataset must be a name and seeds a list of integers")
+        if not isinstance(choice.get("leaves_out", True), bool):
+            raise RMError(f"{path}, choice {i}: leaves_out must be true or false")
+        if not choice.get("leaves_out", True) and not (isinstance(choice.get("exempt"), str) and choice["exempt"]):
+            raise RMError(f"{path}, choice {i}: leaves_out is false, so exempt must name the rule that exempts it")
     return choices
 
 
 def used_pairs(choices: Iterable[dict]) -> dict[tuple[str, int], str]:
-    """(dataset, seed) -> what the first choice that used it chose."""
+    """(dataset, seed) -> what the first choice that used it chose (exempt entries leave no seed out)."""
     pairs: dict[tuple[str, int], str] = {}
     for choice in choices:
+        if not choice.get("leaves_out", True):
+            continue
         for seed in choice["seeds"]:
             pairs.setdefault((choice["dataset"], seed), str(choice["what"]))
     return pairs
