@@ -62,6 +62,35 @@ def test_fast_path_only_for_known_networks():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.slow
 def test_same_losses_and_gradients(seed, generic, actor):
+    check_same_losses_and_gradients(seed, generic, actor)
+
+
+@pytest.mark.parametrize("generic", [False, True], ids=["fast", "generic"])
+def test_same_losses_and_gradients_as_the_installed_iqlloss(generic):
+    """In the quick tier: the check that fails when TorchRL's ``IQLLoss`` computes its losses otherwise."""
+    check_same_losses_and_gradients(0, generic, "gaussian")
+
+
+def test_iqlloss_still_offers_what_the_fast_path_reads():
+    """``SharedForwardIQLLoss`` reads these of ``IQLLoss``: a rename or a change of layout upstream fails here."""
+    from tensordict import TensorDict as TD
+    from torchrl.objectives.value import TD0Estimator
+
+    loss = build(IQLLoss, 0, actor="gaussian")
+    for name in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params",
+                 "value_network_params", "target_value_network_params", "qvalue_loss", "loss_value_diff",
+                 "_reduce_loss", "expectile", "temperature", "loss_function", "reduction"):
+        assert hasattr(loss, name), f"IQLLoss has no {name} any more"
+    assert {loss.tensor_keys.action, loss.tensor_keys.value, loss.tensor_keys.state_action_value} == {
+        "action", "state_value", "state_action_value"}
+    assert type(loss.value_estimator) is TD0Estimator and loss.value_estimator.gamma == pytest.approx(0.99)
+    assert loss.target_qvalue_network_params.batch_size[0] == loss.qvalue_network_params.batch_size[0] == 2
+    fast = build(SharedForwardIQLLoss, 0, actor="gaussian")
+    mlp = fast.actor_network.module[0].module.seq[0]
+    assert (fast.actor_network_params.get(fast._actor_keys[0]).data == TD.from_module(mlp).data).all()
+
+
+def check_same_losses_and_gradients(seed, generic, actor):
     ref, fast = build(IQLLoss, seed, generic, actor), build(SharedForwardIQLLoss, seed, generic, actor)
     fast.load_state_dict(ref.state_dict())
     with torch.no_grad():  # move the targets away from the online networks

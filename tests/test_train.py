@@ -652,3 +652,32 @@ def test_evaluating_more_often_leaves_training_as_it_is(tmp_path, dataset):
             (("dense", dense), ("sparse", sparse))}
     assert list(rows["dense"]) == ["5", "10", "15", "20"] and list(rows["sparse"]) == ["10", "20"]
     assert all(rows["dense"][s] == rows["sparse"][s] for s in ("10", "20"))
+
+
+def test_training_samples_its_replay_buffer_with_the_batches_it_gathered_before(tmp_path, dataset):
+    """The trainer's batches come from TorchRL's ``TensorDictReplayBuffer.sample`` over the refined data; they
+    are bit for bit the batches it gathered by index from the TensorDict before (the same seeded generator)."""
+    from tensordict import TensorDict
+    from torchrl.data import TensorDictReplayBuffer
+
+    from rm_torchrl.train.data import prepare_data
+
+    recipe = load_recipe(make_recipe(tmp_path, dataset), ["trainer.batch_size=32"])
+    data = prepare_data(recipe)
+    assert isinstance(data.buffer, TensorDictReplayBuffer) and len(data.buffer) == len(data.transitions)
+    generator = torch.Generator().manual_seed(recipe.seed)
+    for _ in range(3):
+        batch = data.sample()
+        rows = torch.randint(len(data.transitions), (32,), generator=generator)
+        before = data.transitions.apply(lambda x: x.index_select(0, rows), batch_size=[32])
+        assert set(batch.keys(True, True)) == set(before.keys(True, True))
+        assert all(torch.equal(batch[k], before[k]) for k in before.keys(True, True))
+    state = data.generator.get_state()
+    again = data.sample()
+    data.generator.set_state(state)  # what a resume does with the checkpointed state
+    assert (data.sample() == again).all()
+    data.buffer.sampler.load_state_dict(data.buffer.sampler.state_dict())
+    empty = TensorDictReplayBuffer(storage=data.buffer.storage.__class__(TensorDict({}, [0])), batch_size=4,
+                                   sampler=data.buffer.sampler)
+    with pytest.raises(RMError, match="the training buffer is empty"):
+        empty.sample()

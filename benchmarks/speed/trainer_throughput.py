@@ -27,7 +27,7 @@ from rm_torchrl.methods.losses import compile_method
 from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import TrainingData, prepare_data
+from rm_torchrl.train.data import TrainingData, prepare_data, training_buffer
 from rm_torchrl.train.trainer import gradient_step
 
 OBS, ACT, HIDDEN, BATCH = 60, 9, [256, 256], 256
@@ -72,23 +72,29 @@ def plain_torchrl(data: TensorDict):
     return step
 
 
-def ours(data: TensorDict):
-    """One update of the recipe trainer (``gradient_step``, ``trainer.compile=true``), as a closure."""
+def ours(data: TensorDict, gather: bool = False):
+    """One update of the recipe trainer (``gradient_step``, ``trainer.compile=true``), as a closure; ``gather``
+    draws its batch by index from the TensorDict instead of sampling the replay buffer (the trainer before)."""
     recipe = Recipe()
     recipe.method.iql.actor_dropout = 0.0  # same networks as the baseline
     training = _training_data(data)
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys, OBS, ACT)
     compile_method(method)  # as trainer.compile=true
     terms = METHODS["iql"].terms
+    if not gather:
+        return lambda: gradient_step(method, terms, training.sample())
     g = torch.Generator().manual_seed(0)
-    return lambda: gradient_step(method, terms, training.sample(BATCH, g))
+
+    def step():  # the batches the trainer gathered by index before it sampled its replay buffer
+        rows = torch.randint(len(data), (BATCH,), generator=g)
+        return gradient_step(method, terms, data.apply(lambda x: x.index_select(0, rows), batch_size=[BATCH]))
+    return step
 
 
 def _training_data(data: TensorDict) -> TrainingData:
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(data.batch_size[0]), batch_size=BATCH)
-    rb.extend(data)
     return TrainingData(obs_keys=["observation"], obs_dim=OBS, action_dim=ACT, loc=torch.zeros(OBS),
-                        scale=torch.ones(OBS), events=None, buffer=rb, transitions=data, report=None)
+                        scale=torch.ones(OBS), events=None, buffer=training_buffer(data, BATCH, 0), transitions=data,
+                        report=None)
 
 
 def _rate(step, steps: int) -> float:
@@ -129,9 +135,8 @@ def _peak_memory_child(path: str, refine: bool) -> None:
     training = prepare_data(recipe)
     method = build_method(recipe.method, recipe.network, recipe.optim, recipe.trainer, training.obs_keys,
                           training.obs_dim, training.action_dim)
-    g = torch.Generator().manual_seed(0)
     for _ in range(50):
-        gradient_step(method, METHODS["iql"].terms, training.sample(BATCH, g))
+        gradient_step(method, METHODS["iql"].terms, training.sample())
     print(json.dumps({"peak_rss_mib": _peak_rss_mib(), "training_transitions": len(training.buffer)}))
 
 
@@ -179,17 +184,18 @@ def main() -> None:
         print(json.dumps({"peak_rss_mib": _peak_rss_mib()}))
         return
     data = synthetic(args.transitions)
-    steps = {"plain": plain_torchrl(data), "ours": ours(data)}
+    steps = {"plain": plain_torchrl(data), "ours": ours(data), "gathered": ours(data, gather=True)}
     warmup = {}
     for name, step in steps.items():  # the first calls compile (ours) and allocate
         start = time.perf_counter()
         for _ in range(20):
             step()
         warmup[name] = round(time.perf_counter() - start, 1)
-    baseline, mine = [], []
-    for _ in range(args.rounds):  # interleaved, so drifting machine load hits both alike
+    baseline, mine, gathered = [], [], []
+    for _ in range(args.rounds):  # interleaved, so drifting machine load hits all alike
         baseline.append(_rate(steps["plain"], args.steps))
         mine.append(_rate(steps["ours"], args.steps))
+        gathered.append(_rate(steps["gathered"], args.steps))
     memory = peak_memory(args.memory_transitions)
     print(json.dumps({
         "threads": torch.get_num_threads(),
@@ -197,6 +203,8 @@ def main() -> None:
         "updates_per_second": {"plain_torchrl_iql": round(max(baseline), 1), "rm_torchrl_trainer": round(max(mine), 1)},
         "ratio_trainer_over_plain": round(max(mine) / max(baseline), 2),
         "ratio_per_round": [round(m / b, 2) for m, b in zip(mine, baseline)],
+        "updates_per_second_gathered_by_index": round(max(gathered), 1),
+        "ratio_buffer_sampling_over_gathering": round(max(mine) / max(gathered), 2),
         "warmup_seconds_20_updates": {"plain_torchrl_iql": warmup["plain"], "rm_torchrl_trainer_incl_compile": warmup["ours"]},
         "target_ratio_min": 1.8,
         "peak_memory": memory,

@@ -28,15 +28,28 @@ class SharedForwardIQLLoss(IQLLoss):
       network is called with its parameters from the loss's parameter TensorDicts
       (``ConcatMLP.call_with``): the twin critics as one batched matmul per layer. On a CPU,
       the module dispatch, parameter swapping and ``vmap`` this avoids cost as much as the
-      matmuls themselves. Other networks take the generic TensorDict-module path.
+      matmuls themselves. Other networks get ``IQLLoss.forward`` itself.
+
+    It reads ``IQLLoss`` through its public attributes only (the parameter TensorDicts, ``tensor_keys``,
+    ``value_estimator``, ``qvalue_loss``, ``loss_value_diff``) and LossModule's ``_reduce_loss``, which every
+    TorchRL loss uses to reduce; ``tests/test_methods_iql.py`` fails when any of them changes.
     """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._fast = (_is_concat_operator(self.value_network) and _is_concat_operator(self.qvalue_network)
                       and _is_concat_actor(self.actor_network))
+        if self._fast:  # where the actor's MLP and head sit in its parameter TensorDict (keys mirror module paths)
+            splat = self.actor_network.module[0].module
+            self._actor_keys = tuple(_module_key(self.actor_network, m) for m in splat.seq)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not self._fast:
+            out = super().forward(tensordict)
+            advantage, weight = self.advantage(tensordict)
+            out.update({"advantage_mean": advantage.mean(), "weight_clamped": (weight >= MAX_WEIGHT).float().mean(),
+                        "value_mean": self.state_value(tensordict).detach().mean()})
+            return out
         with torch.no_grad():
             min_q = self.min_q(tensordict)
         value = self.state_value(tensordict)
@@ -87,7 +100,11 @@ class SharedForwardIQLLoss(IQLLoss):
             inputs = [tensordict.get(k) for k in self.qvalue_network.in_keys]
             return self.qvalue_network.module.call_with(params.get("module"), *inputs).squeeze(-1)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
-        return self._vmap_qvalue_networkN0(td_q, params).get(self.tensor_keys.state_action_value).squeeze(-1)
+        qs = []
+        for i in range(params.batch_size[0]):  # the twin critics' parameters are stacked on the first dimension
+            with params[i].to_module(self.qvalue_network, preserve_module_state=False):
+                qs.append(self.qvalue_network(td_q.clone()).get(self.tensor_keys.state_action_value).squeeze(-1))
+        return torch.stack(qs)
 
     def _v(self, tensordict: TensorDictBase, params: TensorDictBase) -> torch.Tensor:
         """V of the observation keys of ``tensordict``, shape [batch]."""
@@ -105,23 +122,24 @@ class SharedForwardIQLLoss(IQLLoss):
         if self._fast:
             td_module, dist_module = self.actor_network.module
             splat = td_module.module
-            params = self.actor_network_params.get(("module", "0", "module", "seq"))
-            out = splat.seq[0].call_with(params.get("0"), *[tensordict.get(k) for k in td_module.in_keys])
+            mlp_key, head_key = self._actor_keys
+            out = splat.seq[0].call_with(self.actor_network_params.get(mlp_key),
+                                         *[tensordict.get(k) for k in td_module.in_keys])
             head = splat.seq[1]
             loc, scale = (head(out) if isinstance(head, NormalParamExtractor)
-                          else head.call_with(params.get(("1", "log_std")), out))
+                          else head.call_with(self.actor_network_params.get((*head_key, "log_std")), out))
             return dist_module.distribution_class(loc, scale, **dist_module.distribution_kwargs).log_prob(action)
         with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
             dist = self.actor_network.get_dist(tensordict)
         return dist.log_prob(action)
 
     def _plain_td0(self, tensordict: TensorDictBase) -> bool:
-        est = self._value_estimator
+        est = self.value_estimator
         return (type(est) is TD0Estimator and not est.average_rewards and not est.shifted
                 and est.tensor_keys.steps_to_next_obs not in tensordict.keys(True))
 
     def _td0_qvalue_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
-        est = self._value_estimator
+        est = self.value_estimator
         nxt = tensordict.get("next")
         with torch.no_grad():
             next_value = self._v(nxt, self.target_value_network_params)
@@ -131,6 +149,11 @@ class SharedForwardIQLLoss(IQLLoss):
         pred = self._q(tensordict, self.qvalue_network_params)
         loss = distance_loss(pred, target.expand_as(pred), loss_function=self.loss_function).sum(0)
         return self._reduce_loss(loss, tensordict=tensordict)
+
+
+def _module_key(root: torch.nn.Module, module: torch.nn.Module) -> tuple[str, ...]:
+    """The key of ``module``'s parameters in ``TensorDict.from_module(root)``: its path in ``named_modules``."""
+    return tuple(next(name for name, m in root.named_modules() if m is module).split("."))
 
 
 def _is_concat_operator(network) -> bool:

@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import TensorDictReplayBuffer, TensorStorage
+from torchrl.data.replay_buffers.samplers import Sampler
 
 from rm_torchrl.data.refined_to_minari import export_record, split_rm_state
 from rm_torchrl.data.sources import load_dataset
@@ -36,18 +37,58 @@ class PolicyInput:
 
 @dataclass
 class TrainingData(PolicyInput):
-    buffer: TensorDictReplayBuffer  # the transitions the losses read, as a TorchRL replay buffer
+    buffer: TensorDictReplayBuffer  # the transitions the losses read: training samples its batches from it
     transitions: TensorDictBase  # the buffer's storage (on the training device)
     report: dict | None  # the refinement report, when the data was refined
 
-    def sample(self, batch_size: int, generator: torch.Generator) -> TensorDictBase:
-        """A uniform batch, gathered by index from the contiguous storage (no sampler overhead).
+    @property
+    def generator(self) -> torch.Generator:
+        """The CPU generator the buffer's sampler draws indices from: the trainer checkpoints its state."""
+        return self.buffer.sampler.generator
 
-        The indices come from a CPU generator (the same batches on every device), then move.
-        """
-        rows = torch.randint(len(self.transitions), (batch_size,), generator=generator)
-        rows = rows.to(self.transitions.device, non_blocking=True)
-        return self.transitions.apply(lambda x: x.index_select(0, rows), batch_size=[batch_size])
+    def sample(self) -> TensorDictBase:
+        """A uniform batch of the buffer's ``batch_size``, as TorchRL's replay buffer samples it (less the
+        ``index`` it adds: the losses read the transitions only)."""
+        return self.buffer.sample().exclude("index")
+
+
+class SeededUniformSampler(Sampler):
+    """Uniform indices with replacement, drawn from a CPU ``torch.Generator`` of the run's.
+
+    TorchRL's ``RandomSampler`` draws from the global generator, which evaluation and the networks also use;
+    a generator of its own makes the batches depend on the seed and the step only (the same on every device),
+    and its state, checkpointed with the run, makes a resumed run draw the batches an unbroken one would.
+    """
+
+    def __init__(self, generator: torch.Generator):
+        super().__init__()
+        self.generator = generator
+
+    def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict]:
+        if len(storage) == 0:
+            raise RMError("the training buffer is empty: there is nothing to sample")
+        return torch.randint(len(storage), (batch_size,), generator=self.generator), {}
+
+    def _empty(self) -> None:
+        return None
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.generator.set_state(state_dict["generator"])
+
+    def dumps(self, path) -> None:
+        torch.save(self.state_dict(), Path(path) / "sampler_generator.pt")
+
+    def loads(self, path) -> None:
+        self.load_state_dict(torch.load(Path(path) / "sampler_generator.pt"))
+
+
+def training_buffer(transitions: TensorDictBase, batch_size: int, seed: int) -> TensorDictReplayBuffer:
+    """The replay buffer training samples: ``transitions`` as its storage (no copy), uniform batches from ``seed``."""
+    return TensorDictReplayBuffer(storage=TensorStorage(transitions), batch_size=batch_size,
+                                  sampler=SeededUniformSampler(torch.Generator().manual_seed(seed)))
 
 
 def policy_reads(recipe: Recipe, events: EventSpec | None, obs_size: int) -> tuple[list, int]:
@@ -131,7 +172,7 @@ def prepare_data(recipe: Recipe, device: torch.device | str = "cpu") -> Training
     _normalize_(td, loc, scale)
     td = td.to(device)  # the same tensors on the CPU: no second copy of the dataset there
     # the TensorDict becomes the buffer's storage as it is
-    buffer = TensorDictReplayBuffer(storage=TensorStorage(td), batch_size=recipe.trainer.batch_size)
+    buffer = training_buffer(td, recipe.trainer.batch_size, recipe.seed)
     obs_keys, obs_dim = policy_reads(recipe, spec, obs.shape[-1])
     return TrainingData(obs_keys=obs_keys, obs_dim=obs_dim, action_dim=td.get("action").shape[-1], loc=loc,
                         scale=scale, events=spec, buffer=buffer, transitions=td, report=report)

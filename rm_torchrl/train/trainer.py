@@ -250,7 +250,7 @@ def _train(recipe: Recipe, run_dir: Path, state: dict | None, progress: bool) ->
                           data.action_dim, device)
     if recipe.trainer.compile:
         compile_method(method)
-    generator = torch.Generator().manual_seed(recipe.seed)
+    generator = data.generator  # the buffer's sampler draws the batches from it (seeded with recipe.seed)
     evaluator = _make_evaluator(recipe, data, method, device)
     if state is None:  # a resume keeps the folder's recipe.yaml until its first update has run
         _write_recipe(recipe, run_dir)
@@ -374,7 +374,7 @@ class _Run:
         """One gradient step on a fresh batch (the first compiles); a non-finite loss marks the run failed."""
         if self.method.schedule is not None:
             self.method.schedule(step)
-        batch = self.data.sample(self.recipe.trainer.batch_size, self.generator)
+        batch = self.data.sample()
         try:
             return (_first_step if step == self.start + 1 else gradient_step)(self.method, self.terms, batch)
         except NonFinite as err:
