@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rm_torchrl.report.choices import leaves_seeds_out
+
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "benchmarks" / "FINDINGS.md"
 RESULTS = ROOT / "benchmarks" / "results"
@@ -147,7 +149,7 @@ def choice_origin(choice: dict) -> str:
 def chosen_on(choices: list[dict]) -> dict:
     """(dataset, origin, seed) -> the ``what`` of every choice that used that seed of that dataset."""
     used: dict = {}
-    for c in choices:
+    for c in filter(leaves_seeds_out, choices):
         for seed in c["seeds"]:
             used.setdefault((canonical(str(c["dataset"])), choice_origin(c), int(seed)), []).append(str(c["what"]))
     return used
@@ -357,7 +359,9 @@ def table1_block(summary: list[dict], aggregates: dict, results_md: str = "", ev
         out += [f"**{titles[part]}** ({len(datasets)} dataset{'s' if len(datasets) != 1 else ''}: "
                 f"{', '.join(datasets)}): rliable's IQM of the final scores over runs and datasets, 95% "
                 f"stratified-bootstrap CI ({a.get('reps', '?'):,} resamples, seed {a.get('seed', '?')}); "
-                "only runs at ours' step budget, on as many seeds per dataset as every dataset has.", ""]
+                "only runs at ours' step budget, on as many seeds per dataset as every dataset has."
+                + (" The IQM mixes two scales: kitchen's 25 points a task and Adroit's D4RL-normalised score."
+                   if len({"kitchen" in d for d in datasets}) == 2 else ""), ""]
         rows = []
         for o in a.get("overall", []):
             note = ""

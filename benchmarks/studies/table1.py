@@ -165,6 +165,11 @@ def current(runs) -> tuple[list, list[str]]:
     return kept, old
 
 
+#: beside a pooled IQM whose datasets are kitchen and Adroit ones: their scores are on two scales
+SCALES_MIXED = (" The pooled IQM mixes two scales: kitchen's 25 points a task and Adroit's D4RL-normalised "
+                "score.")
+
+
 def write_aggregates(stats: dict, path: Path) -> None:
     """aggregates.json: the D4RL data's and the generated stand-ins' aggregates apart."""
     tmp = path.with_name(path.name + ".tmp")
@@ -221,7 +226,9 @@ def report(args) -> None:
     aggregates, profile = [], []
     for origin, part in stats.items():
         what = "the D4RL data" if origin == "d4rl" else "the generated stand-ins"
+        mixed = SCALES_MIXED if len({"kitchen" in d for o in part.overall for d in o.datasets}) == 2 else ""
         aggregates += [line.replace("## Aggregate over datasets", f"## Aggregate over {what}")
+                       + (mixed if line.startswith("The IQM of the final normalised scores") else "")
                        for line in aggregate_lines(part)]
         if part.profiles:
             plot_performance_profile(part, results / f"performance_profile_{origin}.png")

@@ -46,11 +46,16 @@ def read_choices(path: str | os.PathLike) -> list[dict]:
     return choices
 
 
+def leaves_seeds_out(choice: dict) -> bool:
+    """False for an entry recorded as exempt (``"leaves_out": false``, PROTOCOL.md section 3)."""
+    return choice.get("leaves_out", True)
+
+
 def used_pairs(choices: Iterable[dict]) -> dict[tuple[str, int], str]:
     """(dataset, seed) -> what the first choice that used it chose (exempt entries leave no seed out)."""
     pairs: dict[tuple[str, int], str] = {}
     for choice in choices:
-        if not choice.get("leaves_out", True):
+        if not leaves_seeds_out(choice):
             continue
         for seed in choice["seeds"]:
             pairs.setdefault((choice["dataset"], seed), str(choice["what"]))
