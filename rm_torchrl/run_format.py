@@ -4,6 +4,7 @@ A run directory ``OUT/<name>-seed<k>/`` holds :data:`RECIPE_FILE` (the resolved 
 :data:`EVAL_FILE` (one row of :data:`EVAL_COLUMNS` per evaluation), :data:`REFINE_FILE` when the
 data was refined (its stages are Table 2's rows, :data:`TABLE2_ROWS`), TorchRL logger output
 under :data:`LOGS_DIR`, :data:`CHECKPOINT`, :data:`FAILED_FILE` when a non-finite loss stopped it,
+:data:`DATA_FILE` (what the data file was when the run began, so a resume on a replaced file is refused)
 and the lock of the process that owns it.
 """
 from rm_torchrl import files
@@ -15,6 +16,7 @@ LOGS_DIR = "logs"  # TorchRL logger experiment; CSV scalars in logs/scalars/<nam
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_TMP = "checkpoint.tmp"  # a checkpoint being written (renamed over CHECKPOINT when complete)
 FAILED_FILE = "failed.json"
+DATA_FILE = "data_file.json"
 LOCK_FILE = ".lock"
 
 
@@ -23,8 +25,8 @@ def temp_name(name: str) -> str:
     return CHECKPOINT_TMP if name == CHECKPOINT else files.temp_name(name)
 
 
-TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, FAILED_FILE, LOCK_FILE,
-                 *(temp_name(n) for n in (RECIPE_FILE, EVAL_FILE, REFINE_FILE, CHECKPOINT, FAILED_FILE)))
+TRAINER_FILES = (RECIPE_FILE, EVAL_FILE, REFINE_FILE, LOGS_DIR, CHECKPOINT, FAILED_FILE, DATA_FILE, LOCK_FILE,
+                 *(temp_name(n) for n in (RECIPE_FILE, EVAL_FILE, REFINE_FILE, CHECKPOINT, FAILED_FILE, DATA_FILE)))
 
 #: ``reward`` names the reward convention of the returns: ``d4rl`` or ``env`` (the evaluation env's own).
 #: Run statuses a multirun leaves alone, and why (``new`` and ``resumable`` runs train, ``finished`` ones are
@@ -59,8 +61,7 @@ def stage_rows(reports) -> list[str]:
 #: the sub-trajectories the splice abandons brought back: beyond the paper).
 REFINE = ("none", "paper", "reuse")
 #: ``method.hparams``: whose settings the values are: the algorithm's authors' published ones, or ours'
-#: (``recipes/method/ours.yaml`` with the per-dataset values of ``tuned.ours``, each chosen as the tuning record
-#: of ``rm_torchrl.report.choices`` says).
+#: (rm_torchrl.methods.ours: each value and the choice that set it, recorded as rm_torchrl.report.choices reads).
 HPARAMS = ("published", "ours")
 #: The method options that are a preset (algorithm, settings, refinement) rather than an algorithm.
 PRESETS = {("iql", "ours", "paper"): "ours", ("iql", "ours", "reuse"): "ours-reuse"}

@@ -160,31 +160,41 @@ def test_the_named_recipe_is_its_composition_and_a_run_recipe_loads_as_it_is(tmp
     assert again.trainer.steps == 7 and again.to_dict()["method"] == named["method"]
 
 
-#: the dataset options a temperature study covered: each carries (or inherits) tuned.ours
+#: the dataset options a temperature study covered: ours' table (rm_torchrl.methods.ours) names each, rmrl-* by
+#: the D4RL name they stand in for
 STUDIED = {d for d in DATASETS if "kitchen" in d or "relocate" in d or d.endswith("door-cloned")}
-#: ours' temperature where no study chose one: the fallback of ours.yaml's ${oc.select:tuned.ours.temperature,...}
-OURS_TEMPERATURE = yaml.safe_load((RECIPES / "method" / "ours.yaml").read_text())["method"]["iql"]["temperature"]
+
+
+def test_the_ours_option_is_written_from_its_one_place():
+    """recipes/method/ours.yaml is what rm_torchrl.methods.ours makes (python -m rm_torchrl.methods.ours)."""
+    from rm_torchrl.methods.ours import option_yaml
+
+    assert (RECIPES / "method" / "ours.yaml").read_text() == option_yaml()
 
 
 @pytest.mark.parametrize("method", ["ours", "ours-reuse"])
 @pytest.mark.parametrize("data", sorted(STUDIED))
 @pytest.mark.slow
 def test_studied_datasets_give_ours_their_temperature(data, method):
-    """A dataset option's tuned.ours.temperature (its own or its defaults', as rmrl-* inherit) is a temperature
-    study's choice: ours and ours-reuse take it, also on the raw data; the command line still wins."""
-    chosen = option_file("dataset", data)["tuned"]["ours"]["temperature"]
+    """A temperature study's choice (ours' table by data.name; a stand-in takes its D4RL name's): ours and
+    ours-reuse take it, also on the raw data; a dataset option's tuned.ours.temperature and the command line win."""
+    from rm_torchrl.methods.ours import TEMPERATURE_OF
+
+    name = load_recipe(None, [f"dataset={data}"]).data.name
+    chosen = TEMPERATURE_OF[name.removeprefix("rmrl-")]
     assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == chosen
     assert load_recipe(None, [f"dataset={data}", f"method={method}", "data.refine=none"]).method.iql.temperature == chosen
     assert load_recipe(None, [f"dataset={data}", f"method={method}", "method.iql.temperature=7"]).method.iql.temperature == 7
+    assert load_recipe(None, [f"dataset={data}", f"method={method}", "+tuned.ours.temperature=3"]).method.iql.temperature == 3
 
 
 @pytest.mark.parametrize("data", sorted(set(DATASETS) - STUDIED))
 @pytest.mark.slow
 def test_unstudied_datasets_give_ours_its_own_temperature(data):
-    fallback = float(OURS_TEMPERATURE.rstrip("}").rpartition(",")[2])
-    assert OURS_TEMPERATURE.startswith("${oc.select:tuned.ours.temperature,")
+    from rm_torchrl.methods.ours import OURS
+
     for method in ("ours", "ours-reuse"):
-        assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == fallback
+        assert load_recipe(None, [f"dataset={data}", f"method={method}"]).method.iql.temperature == OURS.temperature
 
 
 @pytest.mark.parametrize("data", DATASETS)

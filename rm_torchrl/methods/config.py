@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import List, Protocol
 
 #: Algorithm (``method.name``) -> the method section it reads. The data treatment is ``data.refine`` and whose
-#: settings the values are ``method.hparams``: ``method=ours`` is a preset of the three (recipes/method/ours.yaml).
+#: settings the values are ``method.hparams``: ``method=ours`` is a preset of the three (rm_torchrl.methods.ours writes recipes/method/ours.yaml).
 METHOD_SECTIONS = {"iql": "iql", "bc": "bc", "cql": "cql", "bcq": "bcq"}
 ACTORS = ("tanh_normal", "gaussian")  # network.actor: see rm_torchrl.methods.networks.make_actor
 BC_LOSSES = ("mse", "nll")  # method.bc.loss

@@ -135,8 +135,8 @@ class Recipe:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
-    #: values a study chose for this dataset, per settings preset (``tuned.ours.temperature``), set by a dataset
-    #: option and read by the preset's interpolations; resolved into their entries, so not in ``recipe.yaml``
+    #: values a dataset option of a user's sets for a settings preset (``tuned.ours.temperature`` wins over the table
+    #: of rm_torchrl.methods.ours), read by the preset's interpolations; resolved, so not in ``recipe.yaml``
     tuned: Dict[str, Any] = field(default_factory=dict)
 
     @property

@@ -27,7 +27,8 @@ from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
 
 from rm_torchrl.data.embedded import embedded_file
 from rm_torchrl.envs.d4rl_reward import V1_ENVS, d4rl_reward_task
-from rm_torchrl.errors import RMError, read_yaml, yaml_problem
+from rm_torchrl.errors import RMError, read_yaml, too_deep, yaml_problem
+from rm_torchrl.methods.ours import temperature_for
 from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.run_format import run_label, upgrade_recipe
 from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, Recipe, check_seed
@@ -65,6 +66,8 @@ def scaled_to_budget(rate, reference_steps, steps) -> float:
 
 
 OmegaConf.register_new_resolver("scaled_to_budget", scaled_to_budget, replace=True)
+#: ``${ours_temperature:${data.name}}``: ours' inverse temperature for the dataset (rm_torchrl.methods.ours)
+OmegaConf.register_new_resolver("ours_temperature", temperature_for, replace=True)
 
 
 def hydra_overrides(overrides, path=None) -> list[str]:
@@ -118,6 +121,8 @@ def compose_recipe(path=None, overrides=()) -> DictConfig:
         raise RMError(f"recipe {path.name}: {_one_line(err)}") from None
     except yaml.YAMLError as err:  # in the recipe or in one of the options it composes
         raise RMError(f"recipe {path.name} (or an option it composes) is not valid YAML: {yaml_problem(err)}") from None
+    except RecursionError:  # OmegaConf recurses deeper per level than PyYAML, which read_yaml guards
+        raise too_deep("recipe", path) from None
 
 
 def split_recipe_args(items: list[str]) -> tuple[str | None, list[str]]:
