@@ -1,4 +1,5 @@
 """One exception type for every problem a user can fix, so the CLI can print it without a traceback."""
+import sys
 
 
 class RMError(ValueError):
@@ -9,17 +10,34 @@ class RMError(ValueError):
 
 
 def read_yaml(path, what: str):
-    """The parsed YAML file at ``path``; ``what`` names it in the error ("recipe", "event spec")."""
+    """The parsed YAML file at ``path``; ``what`` names it in the error ("recipe", "event spec").
+
+    Every YAML file a user names is read here, so that each command refuses the same way a file that
+    cannot be read, is not UTF-8 text, is not YAML, or nests deeper than Python's stack can parse.
+    """
     import yaml
 
     try:
-        text = open(path).read()
+        raw = open(path, "rb").read()
     except OSError as err:
         raise RMError(f"cannot read {what} {path}: {err.strerror}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise RMError(f"{what} {path} is not UTF-8 text: byte {raw[err.start]:#04x} at offset {err.start} "
+                      f"({err.reason})") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as err:
         raise RMError(f"{what} {path} is not valid YAML: {yaml_problem(err)}") from None
+    except RecursionError:
+        raise too_deep(what, path) from None
+
+
+def too_deep(what: str, path) -> RMError:
+    """The error for a file whose nesting exhausted Python's stack while a parser (PyYAML, OmegaConf) read it."""
+    return RMError(f"{what} {path} nests lists or mappings too deeply to read (beyond Python's recursion limit, "
+                   f"{sys.getrecursionlimit()})")
 
 
 def read_json(path, what: str = ""):
