@@ -518,6 +518,48 @@ def test_invalid_event_spec_file(capsys, tmp_path, spec, match):
     assert_error(capsys, "rm-graph", ["rm-graph", "--events", path], match)
 
 
+NOT_UTF8 = b"events:\n  - {name: caf\xe9, key: observation, index: 0, op: '>', value: 0.5}\n"  # Latin-1 \xe9
+DEEP = "events: " + "[" * 5000 + "]" * 5000 + "\n"
+
+
+def _every_command_reading(spec: Path, tmp_path: Path, tiny: str) -> list[list]:
+    """The argv of each command that reads an event spec or recipe, given ``spec`` as both."""
+    from helpers import make_recipe, write_run
+
+    recipe = tmp_path / "bad-recipe.yaml"
+    recipe.write_bytes(spec.read_bytes())
+    run_dir = write_run(tmp_path / "runs", "door-human", 0, "iql", True, "door", {6000: 1.0})
+    (run_dir / "recipe.yaml").write_bytes(spec.read_bytes())
+    return [["rm-graph", "--events", spec],
+            ["refine", "--dataset", tiny, "--events", spec, "--out", tmp_path / "o"],
+            ["inspect", "--dataset", tiny, "--events", spec],
+            ["train", recipe, "--no-progress"],
+            ["train", make_recipe(tmp_path, Path(tiny)), f"data.events={spec}", "--no-progress"],
+            ["report", tmp_path / "runs", "--out", tmp_path / "report"]]
+
+
+@pytest.mark.parametrize("body, problem", [
+    (NOT_UTF8, "is not UTF-8 text: byte 0xe9 at offset 22 (invalid continuation byte)"),
+    (DEEP.encode(), "nests lists or mappings too deeply to read"),
+])
+def test_a_non_utf8_or_deeply_nested_yaml_file_is_one_line_naming_it_in_every_command(capsys, tmp_path, tiny,
+                                                                                      body, problem):
+    spec = tmp_path / "spec.yaml"
+    spec.write_bytes(body)
+    for argv in _every_command_reading(spec, tmp_path, tiny):
+        message = assert_error(capsys, argv[0], argv, problem)
+        named = {"train": ("spec.yaml", "bad-recipe.yaml"), "report": ("recipe.yaml",)}.get(argv[0], ("spec.yaml",))
+        assert any(name in message for name in named), message
+    assert not any((tmp_path / name).exists() for name in ("o", "report")) and not any(tmp_path.rglob("*.pt"))
+
+
+def test_a_recipe_nested_too_deeply_for_omegaconf_though_not_for_pyyaml_is_one_line(capsys, tmp_path):
+    recipe = tmp_path / "deep.yaml"
+    recipe.write_text("name: x\ndata: " + "{a: " * 200 + "1" + "}" * 200 + "\n")
+    assert_error(capsys, "train", ["train", recipe, "--no-progress"],
+                 f"recipe {recipe} nests lists or mappings too deeply to read")
+
+
 def test_missing_dataset(capsys, tmp_path):
     assert_error(capsys, "refine", ["refine", "--events", "door", "--out", tmp_path / "o"], "missing --dataset")
 

@@ -558,3 +558,96 @@ def test_load_dataset_takes_the_packages_path_and_the_embedded_spelling():
         load_dataset(3)
     with pytest.raises(RMError, match="no embedded data file 'door.hdf5'"):
         load_dataset("embedded:door.hdf5")
+
+
+# --------------------------------------------------------------------------------------------
+# Malformed arrays: refused in one line naming the array, before reading what cannot be read
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("key", ["observations", "actions", "rewards", "terminals"])
+def test_an_array_stored_as_an_hdf5_group_is_named(tmp_path, key):
+    path, _ = make_file(tmp_path, [5, 6], skip=(key,))
+    with h5py.File(path, "r+") as f:
+        f.create_group(key)["data"] = np.zeros(11)
+    with pytest.raises(RMError, match=rf"{re.escape(str(path))}: '{key}' is an HDF5 group, not an array$"):
+        load_d4rl_hdf5(path)
+
+
+def test_a_declared_but_unwritten_huge_array_is_refused_before_reading(tmp_path):
+    """10^11 rows of 39 float32 declared in a file of a few KiB: reading would allocate 14.2 TiB."""
+    path, _ = make_file(tmp_path, [5, 6], skip=("observations",))
+    with h5py.File(path, "r+") as f:
+        f.create_dataset("observations", shape=(10**11, 39), dtype=np.float32, chunks=(1024, 39))
+    with pytest.raises(RMError, match=r"'observations' declares shape \(100000000000, 39\) of float32 \(14.2 TiB\)"):
+        load_d4rl_hdf5(path)
+
+
+def test_an_array_that_would_not_fit_in_memory_is_refused_naming_its_size(tmp_path, monkeypatch):
+    import rm_torchrl.data.d4rl as d4rl
+
+    path, _ = make_file(tmp_path, [5, 6])
+    monkeypatch.setattr(d4rl, "_available_memory", lambda: 100)
+    with pytest.raises(RMError, match=r"'observations' declares shape \(11, 3\) of float32 \(132 B\), more than the "
+                                      r"100 B of memory available"):
+        load_d4rl_hdf5(path)
+
+
+def test_a_small_declared_but_unwritten_array_is_refused(tmp_path):
+    """Fits in memory, but would read as all-zero observations."""
+    path, _ = make_file(tmp_path, [5, 6], skip=("observations",))
+    with h5py.File(path, "r+") as f:
+        f.create_dataset("observations", shape=(11, 3), dtype=np.float32)
+    with pytest.raises(RMError, match=r"'observations' declares shape \(11, 3\) of float32 \(132 B\) but none of it "
+                                      r"was ever written"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("key", ["rewards", "terminals", "timeouts"])
+def test_zero_dimensional_rewards_or_flags_are_named(tmp_path, key):
+    obs, actions, rewards, last = steps_of([5, 6])
+    arrays = {"rewards": rewards, "terminals": flags(len(obs), last), "timeouts": np.zeros(len(obs), bool)}
+    arrays[key] = np.asarray(arrays[key][0])
+    path = write_h5(tmp_path / "d.hdf5", obs, actions, **arrays)
+    with pytest.raises(RMError, match=rf"{key} must be 1-D, got shape \(\)"):
+        load_d4rl_hdf5(path)
+
+
+@pytest.mark.parametrize("key", ["observations", "actions"])
+def test_zero_width_observations_or_actions_are_refused(tmp_path, key):
+    obs, actions, rewards, last = steps_of([5, 6])
+    arrays = {"observations": obs, "actions": actions}
+    arrays[key] = np.zeros((len(obs), 0), np.float32)
+    path = write_h5(tmp_path / "d.hdf5", *arrays.values(), rewards, terminals=flags(len(obs), last))
+    with pytest.raises(RMError, match=r"observations and actions need one column at least, got shapes"):
+        load_d4rl_hdf5(path)
+
+
+def test_rmrl_refine_refuses_zero_width_actions(tmp_path, capsys):
+    from helpers import assert_error, write_door_h5
+
+    path = write_door_h5(tmp_path / "door.hdf5")
+    with h5py.File(path, "r+") as f:
+        n = len(f["actions"])
+        del f["actions"]
+        f["actions"] = np.zeros((n, 0), np.float32)
+    assert_error(capsys, "refine", ["refine", "--dataset", path, "--events", "door", "--out", tmp_path / "refined"],
+                 f"got shapes ({n}, 39) and ({n}, 0)")
+    assert not (tmp_path / "refined").exists()
+
+
+@pytest.mark.parametrize("key", ["terminals", "timeouts"])
+@pytest.mark.parametrize("values,message", [
+    (np.array([b"no"] * 10 + [b"yes"]), r"must hold booleans, integers or floats \(float64 at most\), got dtype \|S3"),
+    (np.where(np.arange(11) == 4, np.nan, 0.0), r"contain NaN or inf in 1 row\(s\), first at rows \[4\]"),
+])
+def test_byte_string_or_nan_flags_are_refused_not_cast_to_true(tmp_path, key, values, message):
+    path, _ = make_file(tmp_path, [5, 6], **{key: values})
+    with pytest.raises(RMError, match=rf"{key} {message}"):
+        load_d4rl_hdf5(path)
+
+
+def test_integer_and_float_flags_load_like_booleans(tmp_path):
+    native, _ = make_file(tmp_path, [5, 6])
+    ints, _ = make_file(tmp_path, [5, 6], name="ints.hdf5", terminals=flags(11, [4, 10]).astype(np.int64),
+                        timeouts=np.zeros(11, np.float64))
+    assert (load_d4rl_hdf5(ints) == load_d4rl_hdf5(native)).all()

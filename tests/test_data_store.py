@@ -321,3 +321,29 @@ def test_refine_replay_buffer_empty(tmp_path):
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100))
     with pytest.raises(RMError, match="replay buffer is empty"):
         refine_replay_buffer(rb, make_refine_pipeline("door", ALPHA), batch_size=8)
+
+
+@pytest.mark.parametrize("capacity,written", [(3000, 4000), (3100, 4100)])
+def test_a_wrapped_buffer_holding_whole_episodes_refines_them_in_time_order(capacity, written):
+    """Wrapped on an episode boundary: the rows held are whole episodes, the newest first in storage; with a
+    capacity of 3,100 the episode written across the wrap lies in two pieces, its tail at the front."""
+    data = make_door_like(written, episode_length=200, reach_fraction=0.6)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity))
+    for start in range(0, written, 500):  # batches as a collector adds them (one extend past the capacity
+        rb.extend(data[start:start + 500])  # writes its duplicate slots in no defined order)
+    assert rb.write_count == written
+    refined, _ = refine(data[written - capacity:], "door", ALPHA)
+    assert_holds_refined(refine_replay_buffer(rb, make_refine_pipeline("door", ALPHA)), refined)
+
+
+@pytest.mark.parametrize("drop_init,message", [
+    (False, r"holds the last 3,100 of the 4,000 rows written to it, so its oldest episode lost its first steps"),
+    (True, r"holds the last 3,000 of the 4,000 rows written to it, and without an 'is_init' column"),
+])
+def test_a_wrapped_buffer_whose_oldest_episode_lost_its_start_is_refused(drop_init, message):
+    data = make_door_like(4000, episode_length=200)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(3000 if drop_init else 3100))
+    for start in range(0, 4000, 500):
+        rb.extend((data.exclude("is_init") if drop_init else data)[start:start + 500])
+    with pytest.raises(RMError, match=rf"^the replay buffer has wrapped: it {message}.*room for all of it$"):
+        refine_replay_buffer(rb, make_refine_pipeline("door", ALPHA))

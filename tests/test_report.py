@@ -402,6 +402,51 @@ def test_error_unreadable_csv(tmp_path, body, problem):
     assert str(run / "eval.csv") in str(err.value)
 
 
+def test_an_eval_row_with_nan_episodes_leaves_its_run_out_as_unreadable_and_the_report_goes_on(tmp_path, capsys):
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    bad = write_run(tmp_path, "door-human", 1, "iql", True, "door", {6000: 2.0})
+    (bad / "eval.csv").write_text(EVAL_HEADER + "\n6000,20.0,1.5,2.0,0.5,2.0,nan\n")
+    assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
+    err = capsys.readouterr().err
+    rel = bad.relative_to(tmp_path)
+    assert (f"left out {rel}: unreadable: {rel / 'eval.csv'}, line 2: episodes must be a non-negative whole "
+            "number, got 'nan'") in err
+    results = (tmp_path / "out" / "results.md").read_text()
+    assert table_rows(results)["door-human"][0].startswith("1.0 ·") and f"- {rel}: unreadable" in results
+
+
+@pytest.mark.parametrize("damage", ["recipe", "refine_report", "eval"])
+def test_one_unreadable_run_folder_is_left_out_with_a_line_naming_it(tmp_path, capsys, damage):
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
+    bad = write_run(tmp_path, "door-human", 1, "iql", True, "door", {6000: 2.0}, stages=STAGES["door-human"])
+    {"recipe": lambda: (bad / "recipe.yaml").write_bytes(b"name: caf\xe9\n"),
+     "refine_report": lambda: (bad / "refine_report.json").write_text("{"),
+     "eval": lambda: (bad / "eval.csv").write_text("when,what\n1,2\n")}[damage]()
+    runs = load_runs([tmp_path], skipped=(skipped := []))
+    assert [r.seed for r in runs] == [0]
+    assert len(skipped) == 1 and skipped[0].startswith(f"{bad.relative_to(tmp_path)}: unreadable: "), skipped
+
+
+def test_an_unfinished_run_is_left_out_not_reported_with_its_last_evaluation_as_final(tmp_path, capsys):
+    """Two seeds whose last evaluation is at step 2,000: one ran its whole budget, the other stopped at 2,000 of
+    6,000 (trainer.stop_at, a kill, or still training). Both end at the report's last step, so no dagger marks
+    the cell; the unfinished one's evaluation must not count as a final score."""
+    write_run(tmp_path, "door-human", 0, "iql", True, "door", {2000: 5.0})
+    stopped = write_run(tmp_path, "door-human", 1, "iql", True, "door", {2000: 90.0})
+    recipe = (stopped / "recipe.yaml").read_text().replace("steps: 2000", "steps: 6000")
+    (stopped / "recipe.yaml").write_text(recipe)
+    assert cli_report.run(args(tmp_path, out=tmp_path / "out")) == 0
+    rel = stopped.relative_to(tmp_path)
+    assert (f"left out {rel}: unfinished: its last evaluation is at step 2,000 of its trainer.steps 6,000"
+            in capsys.readouterr().err)
+    results = (tmp_path / "out" / "results.md").read_text()
+    assert table_rows(results)["door-human"][0].startswith("5.0 ·") and "90.0" not in results
+    assert f"- {rel}: unfinished" in results and "unfinished (short of their trainer.steps)" in results
+    (tmp_path / "door-human-seed0" / "eval.csv").unlink()  # the finished one gone: nothing left to report
+    with pytest.raises(RMError, match=r"unfinished: its last evaluation is at step 2,000"):
+        load_runs([tmp_path])
+
+
 def test_error_bad_recipe(tmp_path):
     run = write_run(tmp_path, "door-human", 0, "iql", True, "door", {6000: 1.0})
     (run / "recipe.yaml").write_text("name: [unclosed\n")

@@ -121,6 +121,25 @@ def test_a_resume_with_another_budget_or_evaluation_is_refused_and_writes_nothin
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 20
 
 
+def test_a_resume_on_a_dataset_replaced_at_the_same_path_is_refused_in_one_line(tmp_path, capsys):
+    """Only the recipe would be compared: the data file's size and SHA-256 are recorded when the run begins."""
+    from helpers import assert_error
+
+    data = write_d4rl(tmp_path / "door-like.hdf5")
+    recipe = make_recipe(tmp_path, data)
+    run_dir = train(load_recipe(recipe, ["trainer.steps=20", "trainer.stop_at=10"]), progress=False)
+    assert json.loads((run_dir / "data_file.json").read_text())["size"] == data.stat().st_size
+    write_d4rl(tmp_path / "other.hdf5", seed=1).replace(data)
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    assert_error(capsys, "train", ["train", run_dir / "recipe.yaml", "resume=true", "--no-progress"],
+                 f"resume=true, but the dataset {data} is not the file run {run_dir} began on (same size, other "
+                 "content; recorded in data_file.json)")
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()} == before
+    write_d4rl(data)  # the original back, with a new modification time
+    train(load_recipe(run_dir / "recipe.yaml", ["resume=true"]), progress=False)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 20
+
+
 @pytest.mark.parametrize("again", [[], ["method.iql.expectile=0.8"], ["resume=true"]])
 def test_a_run_holding_evaluations_without_its_checkpoint_is_never_retrained(tmp_path, dataset, again, capsys):
     """A finished run whose checkpoint was deleted (to save disk): a rerun, with or without another setting, and
@@ -248,7 +267,7 @@ def test_a_signal_checkpoints_and_the_resumed_run_is_bit_identical(tmp_path, dat
 #: A parent built on run_grid (as the benchmarks and the demo are), exiting as ``rmrl`` does on an interruption.
 GRID = """import sys
 from rm_torchrl.launch import run_grid
-from rm_torchrl.train.trainer import RunInterrupted
+from rm_torchrl.train.stop_signals import RunInterrupted
 
 recipe, *overrides = sys.argv[1:]
 try:
@@ -412,7 +431,7 @@ def test_a_resume_that_fails_before_its_first_update_keeps_the_folders_recipe(tm
     def broken(*args):
         raise RMError("the first update failed")
 
-    monkeypatch.setattr(trainer_module, "_first_step", broken)
+    monkeypatch.setattr(trainer_module, "first_step", broken)
     with pytest.raises(RMError, match="the first update failed"):
         train(load_recipe(recipe, ["trainer.steps=20", "resume=true", "trainer.threads=2"]), progress=False)
     assert (run_dir / "recipe.yaml").read_text() == written
@@ -424,7 +443,7 @@ def test_a_resume_that_fails_before_its_first_update_keeps_the_folders_recipe(tm
 def test_the_progress_clock_restarts_after_the_first_update():
     """The ETA after a minute-long compile counts only the steps after it."""
     from rm_torchrl.progress import progress_bar
-    from rm_torchrl.train.trainer import _restart_clock
+    from rm_torchrl.train.clock import restart_clock as _restart_clock
 
     bar = progress_bar(total=1000, initial=100, file=io.StringIO())
     bar.start_t -= 3600  # as if the first update had taken an hour
@@ -447,7 +466,10 @@ def test_a_signal_after_the_last_step_leaves_a_finished_run(tmp_path, dataset, m
             os.kill(os.getpid(), signal.SIGINT)
         return real(*args)
 
-    monkeypatch.setattr(trainer_module, "gradient_step", last_step_interrupted)
+    import rm_torchrl.train.update as update_module
+
+    for module in (trainer_module, update_module):  # the first update runs through update.first_step
+        monkeypatch.setattr(module, "gradient_step", last_step_interrupted)
     run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["trainer.steps=10"]), progress=False)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["step"] == 10
 

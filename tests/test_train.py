@@ -505,12 +505,15 @@ def test_killed_run_resumes_without_duplicated_history(tmp_path, dataset, monkey
             raise SystemExit("killed")  # not KeyboardInterrupt: no checkpoint on the way out
         return real_step(*args)
 
-    monkeypatch.setattr(trainer_module, "gradient_step", dying_step)
+    import rm_torchrl.train.update as update_module
+
+    for module in (trainer_module, update_module):  # the first update runs through update.first_step
+        monkeypatch.setattr(module, "gradient_step", dying_step)
     killed = load_recipe(make_recipe(tmp_path, dataset), ["name=killed", sched])
     with pytest.raises(SystemExit):
         train(killed, progress=False)
     assert torch.load(killed.run_dir / "checkpoint.pt", weights_only=False)["step"] == 100
-    monkeypatch.setattr(trainer_module, "gradient_step", real_step)
+    monkeypatch.undo()
     run_dir = train(load_recipe(make_recipe(tmp_path, dataset), ["name=killed", "resume=true", sched]), progress=False)
     steps = [int(line.split(",")[0]) for line in (run_dir / "logs" / "scalars" / "loss_actor.csv").read_text().split()]
     assert steps == list(range(20, 201, 20))
@@ -609,7 +612,7 @@ def test_run_many_starts_the_next_run_when_any_run_ends_and_a_signal_stops_the_r
     import time
 
     from rm_torchrl.launch import processes as launch
-    from rm_torchrl.train.trainer import RunInterrupted
+    from rm_torchrl.train.stop_signals import RunInterrupted
 
     recipe = str(make_recipe(tmp_path, dataset))
     runs = tmp_path / "runs"

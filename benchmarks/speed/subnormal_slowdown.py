@@ -29,7 +29,7 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
     from rm_torchrl.train.recipe import load_recipe
     from rm_torchrl.train.data import prepare_data
     from rm_torchrl.methods.registry import METHODS, build_method
-    from rm_torchrl.train.trainer import gradient_step
+    from rm_torchrl.train.update import gradient_step
 
     torch.set_num_threads(1)
     torch.set_flush_denormal(flush)

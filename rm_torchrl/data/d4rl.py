@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,51 @@ _JUMP = 10.0  # a real episode boundary moves the observation this many median s
 
 
 def _read(f, name: str, path: Path) -> np.ndarray:
+    """The array ``name`` of ``f``, refused before reading when it is not one a D4RL file can hold."""
+    import h5py
+
     if name not in f:
         raise RMError(f"{path} is not a D4RL dataset: it has no {name!r} array (found {sorted(f.keys())})")
+    entry = f[name]
+    if not isinstance(entry, h5py.Dataset):
+        raise RMError(f"{path}: {name!r} is an HDF5 {type(entry).__name__.lower()}, not an array")
+    _check_declared_size(entry, name, path)
     try:
-        return f[name][()]
+        return entry[()]
     except (OSError, KeyError, ValueError) as err:  # a corrupted chunk: "filter returned failure" and kin
         raise RMError(f"{path}: cannot read {name!r}, the file is damaged ({str(err).splitlines()[0][:120]})") from None
+
+
+def _check_declared_size(entry, name: str, path: Path) -> None:
+    """Refuses an array that holds no data at all (declared, never written: it would read as fill values) or
+    that would not fit in memory, before reading allocates it (a 10^11-row declaration is 14 TiB)."""
+    size = entry.size * entry.dtype.itemsize
+    declared = f"{name!r} declares shape {entry.shape} of {entry.dtype} ({_bytes(size)})"
+    if size and entry.id.get_storage_size() == 0 and not entry.is_virtual and not entry.external:
+        raise RMError(f"{path}: {declared} but none of it was ever written")
+    room = _available_memory()
+    if room is not None and size > room:
+        raise RMError(f"{path}: {declared}, more than the {_bytes(room)} of memory available")
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available now (Linux's MemAvailable, else free physical pages), None when unknown."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    with contextlib.suppress(AttributeError, OSError, ValueError):
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return None
+
+
+def _bytes(n: int) -> str:
+    """``n`` bytes in the largest binary unit that keeps it at 1 or more (14.2 TiB)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
 
 
 def _jumps(obs: np.ndarray) -> np.ndarray:
@@ -75,7 +115,9 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
     """The D4RL arrays of ``path`` (``timeouts`` all False when absent), checked for shape and type.
 
     Observations, actions and rewards must be real, finite and within float32's range
-    (``require_finite``), checked here before anything casts them to float32.
+    (``require_finite``), checked here before anything casts them to float32; so must the
+    ``terminals`` and ``timeouts`` flags before their cast to bool, which would make NaN or a
+    byte string true.
     """
     import h5py
 
@@ -88,30 +130,34 @@ def read_d4rl_arrays(path: Path) -> dict[str, np.ndarray]:
     with f:
         arrays = {key: _read(f, key, path) for key in ("observations", "actions", "rewards", "terminals")}
         arrays["timeouts"] = _read(f, "timeouts", path) if "timeouts" in f else np.zeros(arrays["terminals"].shape, bool)
-    arrays["terminals"] = arrays["terminals"].astype(bool)
-    arrays["timeouts"] = arrays["timeouts"].astype(bool)
     obs, actions = arrays["observations"], arrays["actions"]
     n = obs.shape[0] if obs.ndim else 0
     if n == 0:
         raise RMError(f"{path} holds no steps")
     if obs.ndim != 2 or actions.ndim != 2:
         raise RMError(f"{path}: observations and actions must be 2-D, got {obs.shape} and {actions.shape}")
-    for key in ("actions", "rewards", "terminals", "timeouts"):
-        if arrays[key].shape[0] != n:
-            raise RMError(f"{path}: {key} has {arrays[key].shape[0]} rows but observations has {n}")
+    if 0 in (obs.shape[1], actions.shape[1]):
+        raise RMError(f"{path}: observations and actions need one column at least, got shapes {obs.shape} and "
+                      f"{actions.shape}")
     for key in ("rewards", "terminals", "timeouts"):
         if arrays[key].ndim != 1:
             raise RMError(f"{path}: {key} must be 1-D, got shape {arrays[key].shape}")
+    for key in ("actions", "rewards", "terminals", "timeouts"):
+        if arrays[key].shape[0] != n:
+            raise RMError(f"{path}: {key} has {arrays[key].shape[0]} rows but observations has {n}")
     values = {}
-    for key in ("observations", "actions", "rewards"):
-        array = arrays[key]
-        if np.issubdtype(array.dtype, np.number):
+    for key, array in arrays.items():
+        flag = key in ("terminals", "timeouts")
+        if np.issubdtype(array.dtype, np.number) or (flag and array.dtype == bool):
             arrays[key] = array = array.astype(array.dtype.newbyteorder("="), copy=False)  # torch takes native order
             with contextlib.suppress(TypeError):  # float128 has no torch dtype
                 values[key] = torch.from_numpy(array)
         if key not in values:
-            raise RMError(f"{path}: {key} must hold integers or floats (float64 at most), got dtype {array.dtype}")
+            kinds = "booleans, integers or floats" if flag else "integers or floats"
+            raise RMError(f"{path}: {key} must hold {kinds} (float64 at most), got dtype {array.dtype}")
     require_finite(values, path, unit="row")
+    arrays["terminals"] = arrays["terminals"].astype(bool)
+    arrays["timeouts"] = arrays["timeouts"].astype(bool)
     return arrays
 
 

@@ -62,7 +62,7 @@ def run_many(runs: list[list[str]], jobs: int, resume_hint: str = "continue them
     Every recipe is checked before any run starts. Each run's output comes through line by line,
     prefixed with its run directory's name (its progress a line every 30 s). SIGTERM or SIGINT is
     forwarded to the running runs, which checkpoint; no further run starts, and once they have
-    stopped :class:`~rm_torchrl.train.trainer.RunInterrupted` says what each saved (exit 143/130).
+    stopped :class:`~rm_torchrl.train.stop_signals.RunInterrupted` says what each saved (exit 143/130).
     The runs are in their own session, so a signal reaches them once, and they get SIGTERM when this
     process dies, however it dies: none outlives it. A run that another process trains fails, unless ``busy`` is
     given: its index is then added there.

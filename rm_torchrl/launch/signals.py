@@ -51,8 +51,8 @@ def kill(pid: int, signum: int) -> None:
 
 
 def interrupted(signum: int, saved: str, resume_hint: str = "run the same command again to resume them") -> None:
-    """Raises :class:`~rm_torchrl.train.trainer.RunInterrupted` saying what the stopped runs saved."""
-    from rm_torchrl.train.trainer import RunInterrupted
+    """Raises :class:`~rm_torchrl.train.stop_signals.RunInterrupted` saying what the stopped runs saved."""
+    from rm_torchrl.train.stop_signals import RunInterrupted
 
     raise RunInterrupted(signum, f"{signal.Signals(signum).name}: stopped; {saved}; {resume_hint}")
 

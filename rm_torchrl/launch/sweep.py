@@ -208,7 +208,8 @@ def run_job(cfg) -> float | None:
 
     from rm_torchrl.report.runs import EVAL_FILE, read_eval_csv
     from rm_torchrl.train.rundir import run_status
-    from rm_torchrl.train.trainer import RunInterrupted, train
+    from rm_torchrl.train.stop_signals import RunInterrupted
+    from rm_torchrl.train.trainer import train
 
     stop_path = os.environ.get(STOP_ENV)
     if stop_path:  # a sweep of the default launcher: its signals stop the sweep, not just this job

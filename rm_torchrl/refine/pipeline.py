@@ -10,6 +10,7 @@ import torch
 
 from tensordict import TensorDictBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.writers import RoundRobinWriter
 from torchrl.envs.transforms import Compose
 
 from rm_torchrl.errors import RMError
@@ -23,6 +24,7 @@ from rm_torchrl.refine.shortest import KeepShortest
 from rm_torchrl.refine.splice import Splice
 from rm_torchrl.refine.split import SplitGroup
 from rm_torchrl.run_format import REUSED, TABLE2_ROWS, stage_rows
+from rm_torchrl.segments import INIT_KEY
 
 
 def make_refine_pipeline(
@@ -185,7 +187,7 @@ def refine_replay_buffer(
     """A new buffer holding the refined content of ``buffer`` (memory-mapped under ``scratch_dir`` if given)."""
     if len(buffer) == 0:
         raise RMError("the replay buffer is empty: there is nothing to refine")
-    refined, _ = run_pipeline(pipeline, buffer.storage[: len(buffer)])
+    refined, _ = run_pipeline(pipeline, _stored_oldest_first(buffer))
     if scratch_dir is None:
         storage = LazyTensorStorage(refined.numel())
     else:
@@ -193,3 +195,27 @@ def refine_replay_buffer(
     out = TensorDictReplayBuffer(storage=storage, **buffer_kwargs)
     out.extend(refined)
     return out
+
+
+def _stored_oldest_first(buffer: TensorDictReplayBuffer) -> TensorDictBase:
+    """The rows of ``buffer`` in the order they were written. A circular buffer that has wrapped holds its newest
+    rows first (an episode across the wrap in two pieces) and has overwritten the oldest episode's first steps:
+    it is read from its cursor on, and refused when the oldest row left is not an episode's first step or
+    nothing (no ``is_init``) tells whether it is."""
+    rows, n = buffer.storage[: len(buffer)], len(buffer)
+    written = getattr(buffer, "write_count", n)  # rows ever written (torchrl >= 0.8), else taken as held
+    if written <= n:
+        return rows
+    wrapped = f"the replay buffer has wrapped: it holds the last {n:,} of the {written:,} rows written to it"
+    fix = "refine the data before it goes into a bounded buffer, or give the buffer room for all of it"
+    if not isinstance(buffer._writer, RoundRobinWriter):
+        raise RMError(f"{wrapped}, overwritten by a {type(buffer._writer).__name__}, so in no known order; {fix}")
+    cursor = written % n
+    rows = rows[torch.cat([torch.arange(cursor, n), torch.arange(cursor)])]
+    if INIT_KEY not in rows.keys():
+        raise RMError(f"{wrapped}, and without an '{INIT_KEY}' column (TorchRL's InitTracker) nothing tells whether "
+                      f"its oldest episode lost its first steps; {fix}")
+    if not bool(rows[INIT_KEY][0].any()):
+        raise RMError(f"{wrapped}, so its oldest episode lost its first steps (the oldest row left is not a first "
+                      f"step); {fix}")
+    return rows

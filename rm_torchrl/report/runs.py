@@ -160,6 +160,16 @@ class Run:
         return float(self.values[-1])
 
     @property
+    def unfinished(self) -> str:
+        """Why the last evaluation is not the run's final one (it stopped at ``trainer.stop_at``, was
+        killed, or is still training), or "" when the run reached its recipe's ``trainer.steps``."""
+        steps = self.recipe.get("trainer", {}).get("steps")
+        if isinstance(steps, bool) or not isinstance(steps, int) or self.final_step >= steps:
+            return ""
+        return (f"unfinished: its last evaluation is at step {self.final_step:,} of its trainer.steps {steps:,} "
+                "(stopped at trainer.stop_at, killed, or still training), not a final score")
+
+    @property
     def finite(self) -> bool:
         """Whether the final evaluation is a number (a policy gone NaN evaluates to nan or inf)."""
         return math.isfinite(self.final_value)
@@ -285,9 +295,12 @@ def read_eval_csv(path: Path) -> dict[str, np.ndarray]:
             values = [float(row[i]) for i in numeric]
         except ValueError:
             raise RMError(f"{path}, line {line}: non-numeric value in {','.join(row)!r}") from None
+        for name, kind in (("step", "number"), ("episodes", "whole number")):  # only the scores may be NaN
+            value = values[numeric.index(header.index(name))] if name in header else 0.0
+            if not math.isfinite(value) or value < 0 or (name == "episodes" and not value.is_integer()):
+                raise RMError(f"{path}, line {line}: {name} must be a non-negative {kind}, "
+                              f"got {row[header.index(name)]!r}")
         step = values[numeric.index(header.index("step"))]
-        if not math.isfinite(step) or step < 0:
-            raise RMError(f"{path}, line {line}: step must be a non-negative number, got {row[header.index('step')]!r}")
         by_step[step] = (values, row[text].strip() if text is not None else "")
     steps = sorted(by_step)
     table = np.array([by_step[s][0] for s in steps], dtype=np.float64).reshape(len(steps), len(numeric))
@@ -370,10 +383,12 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
               skipped: list[str] | None = None) -> list[Run]:
     """Every scoreable run at or below ``paths``.
 
-    Runs marked failed (``failed.json``: a non-finite loss stopped them) and runs without any
-    evaluation yet are left out, each with a line in ``skipped`` when given (naming the run by its
-    path below the root it was found in: the lines go into reports read on other machines); if no
-    run is left, the error names them all by their full paths.
+    Runs marked failed (``failed.json``: a non-finite loss stopped them), runs without any evaluation
+    yet, unfinished runs (:attr:`Run.unfinished`: their last evaluation is not a final score) and run
+    folders that cannot be read are left out, each with a line in ``skipped`` when given (naming the run
+    by its path below the root it was found in: the lines go into reports read on other machines), so
+    one bad folder never stops the report of the others; if no run is left, the error names them all
+    by their full paths.
     """
     paths = list(paths)
     runs, left_out, named = [], [], []
@@ -391,13 +406,18 @@ def load_runs(paths: Iterable[str | os.PathLike], dataset_from: str = "name",
             named.append(f"{shown}: failed{': ' + why if why else ''}")
             continue
         try:
-            runs.append(read_run(run_dir, dataset_from))
-            runs[-1].where = shown
+            run = read_run(run_dir, dataset_from)
         except RMError as err:
-            if "has no evaluations" not in str(err):
-                raise
-            left_out.append(str(err))
-            named.append(str(err).replace(str(run_dir), shown))
+            why = str(err) if "has no evaluations" in str(err) else f"{run_dir}: unreadable: {err}"
+            left_out.append(why)
+            named.append(why.replace(str(run_dir), shown))
+            continue
+        run.where = shown
+        if run.unfinished:
+            left_out.append(f"{run_dir}: {run.unfinished}")
+            named.append(f"{shown}: {run.unfinished}")
+            continue
+        runs.append(run)
     left_out += unread
     named += unread
     if not runs:

@@ -256,7 +256,7 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
                      aggregates: Aggregates | None = None) -> str:
     """The whole ``results.md``: what was measured, Table 1 (with the IQMs of ``aggregates`` and its
     aggregate section when given), Table 2, links to ``figures`` (``(title, relative path)`` pairs) and the
-    runs left out (``skipped``: failed or not yet evaluated)."""
+    runs left out (``skipped``: failed, not yet evaluated, unfinished or unreadable)."""
     runs = list(runs)
     groups = list(groups) if groups is not None else group_runs(runs)
     parts = ["# Results", "", *describe(runs, groups, aggregates), "",
@@ -281,6 +281,7 @@ def results_markdown(runs: Iterable[Run], groups: Sequence[Group] | None = None,
         for title, path in figures:
             parts += [f"![{title}]({path})", ""]
     if skipped:
-        parts += ["## Runs left out", "", "Not scored: failed, or not evaluated yet.", "",
+        parts += ["## Runs left out", "", "Not scored: failed, not evaluated yet, unfinished (short of their "
+                  "trainer.steps) or unreadable.", "",
                   *(f"- {line}" for line in skipped), ""]
     return "\n".join(parts)

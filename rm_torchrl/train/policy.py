@@ -26,7 +26,7 @@ from rm_torchrl.train.evaluate import Evaluator, make_eval_env
 from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.recipe import load_recipe
 from rm_torchrl.train.rundir import load_checkpoint
-from rm_torchrl.train.trainer import resolve_device
+from rm_torchrl.train.device import resolve_device
 
 
 

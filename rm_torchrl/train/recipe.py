@@ -32,6 +32,7 @@ from rm_torchrl.methods.ours import temperature_for
 from rm_torchrl.refine.shortest import check_alpha
 from rm_torchrl.run_format import run_label, upgrade_recipe
 from rm_torchrl.train.config import CHOICES, DEVICES, INTERVALS, Recipe, check_seed
+from rm_torchrl.train.device import DEVICE_NAME
 from rm_torchrl.train.recipes_root import RECIPES
 
 
@@ -256,7 +257,7 @@ def validate(recipe: Recipe) -> None:
                       f"end), got {recipe.trainer.stop_at}")
     if recipe.trainer.threads < 0:
         raise RMError(f"recipe: trainer.threads must be >= 0 (0: the idle cores), got {recipe.trainer.threads}")
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", recipe.trainer.device):
+    if not DEVICE_NAME.fullmatch(recipe.trainer.device):
         raise RMError(f"recipe: trainer.device must be {DEVICES}, got {recipe.trainer.device!r}")
     if recipe.data.refined:
         if not recipe.data.events:

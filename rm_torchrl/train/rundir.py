@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import hashlib
 import io
 import json
 import os
@@ -18,9 +19,10 @@ from pathlib import Path
 
 import torch
 
-from rm_torchrl.errors import RMError
+from rm_torchrl.data.embedded import expand_embedded
+from rm_torchrl.errors import RMError, read_json
 from rm_torchrl.files import WriteFailed, write_atomic
-from rm_torchrl.run_format import (CHECKPOINT, EVAL_FILE, FAILED_FILE as FAILED, LOCK_FILE as LOCK,
+from rm_torchrl.run_format import (CHECKPOINT, DATA_FILE, EVAL_FILE, FAILED_FILE as FAILED, LOCK_FILE as LOCK,
                                    TRAINER_FILES, flat_recipe, temp_name, upgrade_recipe)
 
 #: Recipe entries a resumed run must share with its checkpoint: what it learns from, the budget its schedules
@@ -97,7 +99,8 @@ class RunLock:
     def __exit__(self, *exc) -> None:
         if self.fd is not None:
             try:  # a run that wrote nothing (a bad source, say) leaves no folder behind; removed while still held
-                if os.listdir(self.path.parent) == [LOCK]:
+                if set(os.listdir(self.path.parent)) <= {LOCK, DATA_FILE}:
+                    (self.path.parent / DATA_FILE).unlink(missing_ok=True)
                     self.path.unlink()
                     self.path.parent.rmdir()
             except OSError:
@@ -189,12 +192,44 @@ def last_evaluated_step(run_dir: Path) -> int | None:
         return -1  # rows that are not this trainer's: evaluations all the same, never to be deleted
 
 
+def data_file(source: str) -> dict | None:
+    """What identifies the data file ``source``: its size, modification time and SHA-256 (compared: a copy or
+    ``touch`` changes the time, not the data), None for a source that is not a file (a Minari dataset)."""
+    path = Path(expand_embedded(str(source)))
+    if not path.is_file():
+        return None
+    try:
+        info = path.stat()
+        with open(path, "rb") as f:
+            digest = hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError as err:
+        raise RMError(f"cannot read dataset file {path}: {err.strerror}") from None
+    return {"path": str(path), "size": info.st_size, "mtime_ns": info.st_mtime_ns, "sha256": digest}
+
+
+def _check_data_file(recipe, run_dir: Path) -> None:
+    """Refuses a resume whose data file is not the one the run began on (replaced at the same path): the recipe
+    would match, the data not. Runs begun before :data:`DATA_FILE` existed are not checked."""
+    path = run_dir / DATA_FILE
+    if not path.is_file():
+        return
+    was, now = read_json(path, "run data record"), data_file(recipe.data.source)
+    if not isinstance(was, dict) or now is None or was.get("sha256") == now["sha256"]:
+        return
+    changed = f"{was.get('size')} bytes -> {now['size']} bytes" if was.get("size") != now["size"] else \
+        "same size, other content"
+    raise RMError(f"resume=true, but the dataset {now['path']} is not the file run {run_dir} began on ({changed}; "
+                  f"recorded in {DATA_FILE}); restore that file, or pick another name or seed to train on this one")
+
+
 def open_run(recipe) -> dict | None:
-    """Decides, before anything is written, how ``recipe`` starts: returns the checkpoint to resume, or None.
+    """Decides how ``recipe`` starts: returns the checkpoint to resume, or None.
 
     Call it holding the :class:`RunLock`. Refuses: a checkpoint without ``resume=true``, a resume
-    whose method, data or network differ from the checkpoint's, a checkpoint already past
-    ``trainer.steps``, and a directory without a checkpoint that holds files the trainer did not write.
+    whose method, data or network differ from the checkpoint's or whose data file was replaced since the
+    run began (:data:`DATA_FILE`), a checkpoint already past ``trainer.steps``, and a directory without a
+    checkpoint that holds files the trainer did not write. Nothing is written but, for a new run,
+    :data:`DATA_FILE`, before the data is read.
     """
     run_dir = recipe.run_dir
     ckpt = run_dir / CHECKPOINT
@@ -213,6 +248,7 @@ def open_run(recipe) -> dict | None:
                           + ("; a run of another budget is a new run: pick another name or seed" if budget else ""))
         if state["step"] > recipe.trainer.steps:
             raise RMError(f"{ckpt} is at step {state['step']}, past trainer.steps={recipe.trainer.steps}")
+        _check_data_file(recipe, run_dir)
         (run_dir / FAILED).unlink(missing_ok=True)
         return state
     evaluated = last_evaluated_step(run_dir)
@@ -229,6 +265,9 @@ def open_run(recipe) -> dict | None:
             shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
     if recipe.resume:
         print(f"resume=true, but {run_dir} holds no checkpoint yet: starting from step 0", file=sys.stderr)
+    identity = data_file(recipe.data.source)
+    if identity is not None:
+        write_atomic(run_dir / DATA_FILE, json.dumps(identity, indent=1) + "\n")
     return None
 
 
