@@ -15,7 +15,7 @@ from rm_torchrl.data.sources import load_dataset
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.refine.pipeline import refine
-from rm_torchrl.segments import run_starts
+from rm_torchrl.row_runs import run_starts
 from rm_torchrl.train import load_recipe, train
 
 from helpers import leftovers, make_recipe, policy_inputs, write_d4rl

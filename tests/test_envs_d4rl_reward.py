@@ -148,7 +148,7 @@ def test_bad_input_is_one_line():
 NOTICE_PROBE = """
 import sys, torch
 from rm_torchrl.train import load_recipe
-from rm_torchrl.train.data import PolicyInput
+from rm_torchrl.train.training_data import PolicyInput
 from rm_torchrl.train.evaluate import make_eval_env
 dataset, dim, *overrides = sys.argv[1:]
 recipe = load_recipe(None, [f"dataset={dataset}", "method=iql"] + overrides)

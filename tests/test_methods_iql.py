@@ -9,7 +9,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import IQLLoss, SoftUpdate, ValueEstimators
 
 from rm_torchrl.methods.iql import MAX_WEIGHT, SharedForwardIQLLoss
-from rm_torchrl.methods.losses import ForeachSoftUpdate
+from rm_torchrl.methods.optim import ForeachSoftUpdate
 from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 
 OBS, ENC, ACT = 7, 3, 2

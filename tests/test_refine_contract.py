@@ -194,7 +194,7 @@ def test_slices_of_episodes_are_refused(cls):
     readers write it) a stage that needs whole episodes refuses them instead of labelling each slice from u_I."""
     from torchrl.data import SliceSampler
 
-    from rm_torchrl.segments import INIT_KEY, run_starts
+    from rm_torchrl.row_runs import INIT_KEY, run_starts
 
     stage, td, upstream = _case(cls)
     td = td.clone().set(INIT_KEY, run_starts(td["episode"]).unsqueeze(-1))
@@ -218,7 +218,7 @@ def test_the_readers_mark_first_steps_so_a_slice_sampled_d4rl_file_is_refused():
     from rm_torchrl.data import load_d4rl_hdf5
     from rm_torchrl.data.embedded import embedded_file
     from rm_torchrl.refine import LabelRM
-    from rm_torchrl.segments import INIT_KEY
+    from rm_torchrl.row_runs import INIT_KEY
 
     data = load_d4rl_hdf5(embedded_file("door-human-v0.hdf5"))
     assert int(data[INIT_KEY].sum()) == int(data["episode"].max()) + 1 == 25

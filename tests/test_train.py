@@ -195,7 +195,7 @@ def test_bc_mse_is_the_squared_error_of_the_deterministic_action_and_trains_the_
     the Gaussian actor's state-independent log-std gets no gradient from it (the likelihood loss trains it)."""
     from tensordict import TensorDict
 
-    from rm_torchrl.methods.losses import BCLoss
+    from rm_torchrl.methods.bc import BCLoss
     from rm_torchrl.methods.networks import ConcatMLP, GaussianHead, make_actor
 
     torch.manual_seed(0)
@@ -459,7 +459,7 @@ def test_subnormals_are_flushed_unless_told_not_to(tmp_path, dataset, flush):
 
 def test_cosine_actor_schedule(tmp_path, dataset):
     """The actor's lr falls from its recipe value to ~0 over the run; the critics' stays."""
-    from rm_torchrl.methods.losses import ActorSchedule
+    from rm_torchrl.methods.optim import ActorSchedule
     from rm_torchrl.methods.registry import build_method
 
     recipe = load_recipe(make_recipe(tmp_path, dataset), ["optim.actor_schedule=cosine", "optim.lr_actor=1.0e-3",
@@ -529,7 +529,7 @@ def test_compiled_loss_matches_eager():
     from tensordict import TensorDict
 
     from rm_torchrl.train.config import Recipe
-    from rm_torchrl.methods.losses import compile_method
+    from rm_torchrl.methods.method import compile_method
     from rm_torchrl.methods.registry import build_method
 
     torch.manual_seed(0)
@@ -663,7 +663,7 @@ def test_training_samples_its_replay_buffer_with_the_batches_it_gathered_before(
     from tensordict import TensorDict
     from torchrl.data import TensorDictReplayBuffer
 
-    from rm_torchrl.train.data import prepare_data
+    from rm_torchrl.train.training_data import prepare_data
 
     recipe = load_recipe(make_recipe(tmp_path, dataset), ["trainer.batch_size=32"])
     data = prepare_data(recipe)

@@ -8,7 +8,7 @@ from tensordict.nn import TensorDictModule
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.train import load_recipe
-from rm_torchrl.train.data import PolicyInput
+from rm_torchrl.train.training_data import PolicyInput
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
 
 TOY = "RMTorchRLToyCountdown-v0"

@@ -25,7 +25,7 @@ from tensordict.nn import InteractionType, set_interaction_type
 
 from rm_torchrl.rm.machine import EventOrderedRM
 from rm_torchrl.train.recipe import load_recipe
-from rm_torchrl.train.data import ENCODING_KEY, prepare_data
+from rm_torchrl.train.training_data import ENCODING_KEY, prepare_data
 from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.rundir import load_checkpoint
 

@@ -40,8 +40,8 @@ from rm_torchrl.envs import RMEnvTransform
 from rm_torchrl.events import load_event_spec
 from rm_torchrl.envs.kitchen_v0 import KITCHEN_TASK_GOALS, KITCHEN_TASK_INDICES
 from rm_torchrl.refine import refine
-from rm_torchrl.segments import run_starts
-from rm_torchrl.train.data import ENCODING_KEY
+from rm_torchrl.row_runs import run_starts
+from rm_torchrl.train.training_data import ENCODING_KEY
 
 #: FrankaKitchen-v1's flat observation: robot qpos (9), robot qvel (9), object qpos (21), object qvel (20)
 QPOS = np.r_[0:9, 18:39]

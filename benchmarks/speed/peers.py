@@ -155,9 +155,9 @@ class RmrlUpdate:
     def __init__(self, data: dict, total: int, seed: int = 0, compile: bool = True):
         import torch
 
-        from rm_torchrl.methods.losses import compile_method
+        from rm_torchrl.methods.method import compile_method
         from rm_torchrl.methods.registry import METHODS, build_method
-        from rm_torchrl.train.data import training_buffer
+        from rm_torchrl.train.training_data import training_buffer
         from rm_torchrl.train.trainer import NonFinite, gradient_step
 
         torch.manual_seed(seed)

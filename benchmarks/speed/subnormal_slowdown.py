@@ -27,7 +27,7 @@ def child(flush: bool, steps: int, window: int, source: str) -> dict:
     import torch
 
     from rm_torchrl.train.recipe import load_recipe
-    from rm_torchrl.train.data import prepare_data
+    from rm_torchrl.train.training_data import prepare_data
     from rm_torchrl.methods.registry import METHODS, build_method
     from rm_torchrl.train.update import gradient_step
 

@@ -23,11 +23,11 @@ from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import IQLLoss, SoftUpdate
 
-from rm_torchrl.methods.losses import compile_method
+from rm_torchrl.methods.method import compile_method
 from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import TrainingData, prepare_data, training_buffer
+from rm_torchrl.train.training_data import TrainingData, prepare_data, training_buffer
 from rm_torchrl.train.update import gradient_step
 
 OBS, ACT, HIDDEN, BATCH = 60, 9, [256, 256], 256

@@ -96,7 +96,7 @@ def run(args) -> int:
     from rm_torchrl.data.store import check_out, output_in_place, write_refined
     from rm_torchrl.events.spec import load_event_spec
     from rm_torchrl.refine.shortest import check_alpha
-    from rm_torchrl.segments import run_starts
+    from rm_torchrl.row_runs import run_starts
 
     opts = resolve_options(args)
     check_alpha(opts["alpha"])

@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from rm_torchrl.data.episode_ends import EPISODE_ENDS
 from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
-from rm_torchrl.segments import INIT_KEY, run_starts
+from rm_torchrl.row_runs import INIT_KEY, run_starts
 
 _JUMP = 10.0  # a real episode boundary moves the observation this many median steps at least
 

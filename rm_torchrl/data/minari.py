@@ -26,7 +26,7 @@ from torchrl.data.datasets import MinariExperienceReplay, minari_data
 
 from rm_torchrl.data.values import require_finite
 from rm_torchrl.errors import RMError
-from rm_torchrl.segments import INIT_KEY, run_starts
+from rm_torchrl.row_runs import INIT_KEY, run_starts
 
 _BOOKKEEPING = ("index", "_weight", "done", "terminated", "truncated")
 

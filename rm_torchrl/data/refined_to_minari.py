@@ -31,7 +31,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.data.d4rl_to_minari import (MinariWriter, _cache_root, _check_target, _space, _versions,
                                             building_in_cache, check_dataset_name)
 from rm_torchrl.errors import RMError
-from rm_torchrl.segments import episode_runs
+from rm_torchrl.row_runs import episode_runs
 
 EXPORT_METADATA_KEY = "rm_torchrl_refined"
 RM_STATE_KEY = "rm_state"

@@ -14,7 +14,7 @@ import torch
 from tensordict import TensorDict
 
 from rm_torchrl.errors import RMError
-from rm_torchrl.segments import INIT_KEY
+from rm_torchrl.row_runs import INIT_KEY
 
 OBS_DIM, ACTION_DIM = 39, 28
 

@@ -14,7 +14,7 @@ from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
-from rm_torchrl.segments import episode_runs, position_in_run, run_index
+from rm_torchrl.row_runs import episode_runs, position_in_run, run_index
 
 
 def _feature_range(event, td: TensorDictBase) -> tuple[float | None, float | None]:

@@ -1,9 +1,11 @@
-"""What the trainer trains: a method's loss, optimisers, evaluation policy and target updater, as one value."""
+"""What the trainer trains: a method's loss, optimisers, evaluation policy and target updater, as one value,
+and its loss compiled."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Callable
 
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule, SoftUpdate
@@ -20,3 +22,10 @@ class Method:
 
     def compute_loss(self, batch: TensorDictBase) -> TensorDictBase:
         return (self.loss if self.compiled is None else self.compiled)(batch)
+
+
+def compile_method(method: Method) -> Method:
+    """Have ``method.compute_loss`` run ``torch.compile(loss)``: on CPU it fuses the losses' element-wise work
+    and drops most per-op overhead of the forward and backward passes (compiled on the first call)."""
+    method.compiled = torch.compile(method.loss, dynamic=False)
+    return method

@@ -12,7 +12,7 @@ encoding, (s, u). For a batch of transitions (s, u, a, r, s', u', d):
                  + lambda_pi ||phi||^2                                                                    (eq. 8)
 
 Qbar are the target critics, Polyak-averaged at rate 0.005. The penalty lambda ||w||^2 has the gradient
-2 lambda w, so Adam's coupled ``weight_decay`` is 2 lambda (``optim.decay: l2``, :func:`~rm_torchrl.methods.losses.adam`);
+2 lambda w, so Adam's coupled ``weight_decay`` is 2 lambda (``optim.decay: l2``, :func:`~rm_torchrl.methods.optim.adam`);
 lambda_Q applies to the value network too. The actor's rate is cosine-annealed to 0 over the run, as IQL's authors
 do. The losses are :class:`~rm_torchrl.methods.iql.SharedForwardIQLLoss` (TorchRL's ``IQLLoss``).
 

@@ -28,7 +28,8 @@ from rm_torchrl.methods.bcq import make_bcq_loss, make_bcq_optimizers
 from rm_torchrl.methods.config import (METHOD_SECTIONS, BCConfig, BCQConfig, CQLConfig, IQLConfig, MethodConfig,
                                        NetworkConfig, OptimConfig, TrainerSection)
 from rm_torchrl.methods.iql import SharedForwardIQLLoss
-from rm_torchrl.methods.losses import ActorSchedule, BCLoss, ForeachSoftUpdate, adam
+from rm_torchrl.methods.bc import BCLoss
+from rm_torchrl.methods.optim import ActorSchedule, adam, ForeachSoftUpdate
 from rm_torchrl.methods.method import Method
 from rm_torchrl.methods.networks import make_actor, make_qvalue, make_value
 

@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.base import DatasetTransform
-from rm_torchrl.segments import INIT_KEY, episode_runs
+from rm_torchrl.row_runs import INIT_KEY, episode_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 

@@ -8,7 +8,7 @@ from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.base import DatasetTransform, event_name, group_name
-from rm_torchrl.segments import run_starts
+from rm_torchrl.row_runs import run_starts
 
 
 #: The most (placed set, last event) states the exact search visits; beyond it the search is refused.

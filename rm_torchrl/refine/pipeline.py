@@ -24,7 +24,7 @@ from rm_torchrl.refine.shortest import KeepShortest
 from rm_torchrl.refine.splice import Splice
 from rm_torchrl.refine.split import SplitGroup
 from rm_torchrl.run_format import REUSED, TABLE2_ROWS, stage_rows
-from rm_torchrl.segments import INIT_KEY
+from rm_torchrl.row_runs import INIT_KEY
 
 
 def make_refine_pipeline(

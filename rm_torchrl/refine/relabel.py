@@ -5,7 +5,7 @@ import torch
 from tensordict import TensorDictBase
 
 from rm_torchrl.refine.base import DatasetTransform, order_from_ranks
-from rm_torchrl.segments import run_ends, run_index, run_starts
+from rm_torchrl.row_runs import run_ends, run_index, run_starts
 from rm_torchrl.rm.machine import EventOrderedRM
 
 

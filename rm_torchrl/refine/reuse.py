@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDictBase
 
 from rm_torchrl.refine.base import DatasetTransform, group_name, order_from_ranks
-from rm_torchrl.segments import run_starts
+from rm_torchrl.row_runs import run_starts
 
 
 class ReuseAbandoned(DatasetTransform):

@@ -10,7 +10,7 @@ from tensordict import TensorDictBase
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.base import DatasetTransform, take_rows
-from rm_torchrl.segments import rows_of_runs, run_starts
+from rm_torchrl.row_runs import rows_of_runs, run_starts
 
 
 def check_alpha(alpha) -> Fraction:

@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.errors import RMError
 from rm_torchrl.refine.base import DatasetTransform, take_rows
 from rm_torchrl.refine.label import LabelRM
-from rm_torchrl.segments import INIT_KEY, episode_runs, rows_of_runs
+from rm_torchrl.row_runs import INIT_KEY, episode_runs, rows_of_runs
 from rm_torchrl.rm.machine import EventOrderedRM
 
 

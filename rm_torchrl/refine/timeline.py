@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 from rm_torchrl.events.spec import EventSpec, load_event_spec
 from rm_torchrl.refine.pipeline import make_refine_pipeline
 from rm_torchrl.refine.shortest import check_alpha
-from rm_torchrl.segments import episode_runs, run_starts
+from rm_torchrl.row_runs import episode_runs, run_starts
 
 
 @dataclass

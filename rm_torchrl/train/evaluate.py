@@ -21,7 +21,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import ENCODING_KEY, PolicyInput
+from rm_torchrl.train.training_data import ENCODING_KEY, PolicyInput
 
 #: Most envs an evaluation steps at once (MuJoCo envs take about 9 MB each): more episodes run in batches of it.
 MAX_BATCH = 50

@@ -21,7 +21,7 @@ from rm_torchrl.errors import RMError
 from rm_torchrl.events.spec import load_event_spec
 from rm_torchrl.run_format import CHECKPOINT, RECIPE_FILE
 from rm_torchrl.train.config import Recipe, check_seed
-from rm_torchrl.train.data import PolicyInput, policy_reads
+from rm_torchrl.train.training_data import PolicyInput, policy_reads
 from rm_torchrl.train.evaluate import Evaluator, make_eval_env
 from rm_torchrl.methods.registry import build_method
 from rm_torchrl.train.recipe import load_recipe

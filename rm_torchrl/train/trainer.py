@@ -20,13 +20,13 @@ from tqdm import tqdm
 
 from rm_torchrl.errors import RMError
 from rm_torchrl.files import WriteFailed, write_atomic
-from rm_torchrl.methods.losses import compile_method
+from rm_torchrl.methods.method import compile_method
 from rm_torchrl.methods.registry import METHODS, build_method
 from rm_torchrl.progress import progress_bar
 from rm_torchrl.run_format import CHECKPOINT, EVAL_COLUMNS, EVAL_FILE, RECIPE_FILE, REFINE_FILE
 from rm_torchrl.train.clock import Stopwatch, restart_clock
 from rm_torchrl.train.config import Recipe
-from rm_torchrl.train.data import prepare_data
+from rm_torchrl.train.training_data import prepare_data
 from rm_torchrl.train.device import resolve_device
 from rm_torchrl.train.run_logs import ScalarLog, trim_history
 from rm_torchrl.train.rundir import RunLock, appending, load_checkpoint, mark_failed, open_run, save_checkpoint

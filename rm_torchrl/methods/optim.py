@@ -1,50 +1,17 @@
-"""Loss and optimiser pieces the methods share: BC's loss, Adam with the paper's weight decay, the
-actor's schedule, a one-call soft update and compilation (the registry is :mod:`rm_torchrl.methods.registry`)."""
+"""How the methods' parameters move: Adam with the paper's weight decay, the actor's cosine schedule, and the
+soft update of the target networks in one call."""
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule
-from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import LossModule, SoftUpdate
+from torchrl.objectives import SoftUpdate
 
 from rm_torchrl.methods.config import OptimConfig
-from rm_torchrl.methods.method import Method
 
-
-class BCLoss(LossModule):
-    """Behaviour cloning of the dataset action.
-
-    ``mse``: the mean squared error of the policy's deterministic action (CORL's BC: a tanh MLP regressed
-    on the actions); ``nll``: the negative log-likelihood of the action under the policy's distribution.
-
-        >>> from rm_torchrl.methods.networks import make_actor
-        >>> loss = BCLoss(make_actor(["observation"], 3, 2, [8], distribution="gaussian"), "mse")
-        >>> td = TensorDict({"observation": torch.zeros(4, 3), "action": torch.zeros(4, 2)}, [4])
-        >>> sorted(loss(td).keys())
-        ['loss_actor']
-    """
-
-    actor_network: TensorDictModule
-    actor_network_params: TensorDictParams
-    target_actor_network_params: TensorDictParams
-
-    def __init__(self, actor_network: ProbabilisticActor, loss: str = "nll"):
-        super().__init__()
-        if loss not in ("mse", "nll"):
-            raise ValueError(f"BC loss must be mse or nll, got {loss!r}")
-        self.loss = loss
-        self.convert_to_functional(actor_network, "actor_network")
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        with self.actor_network_params.to_module(self.actor_network):
-            dist = self.actor_network.get_dist(tensordict)
-        if self.loss == "mse":
-            return TensorDict({"loss_actor": (dist.deterministic_sample - tensordict.get("action")).pow(2).mean()})
-        action = tensordict.get("action").clamp(-1 + 1e-5, 1 - 1e-5)
-        return TensorDict({"loss_actor": -dist.log_prob(action).mean()})
+if TYPE_CHECKING:
+    from rm_torchrl.methods.method import Method
 
 
 class ActorSchedule:
@@ -110,10 +77,3 @@ class ForeachSoftUpdate(SoftUpdate):
                         targets.append(target.get(key).data)
             pairs = self._pairs = (targets, sources)
         torch._foreach_lerp_(pairs[0], pairs[1], 1 - self.eps)
-
-
-def compile_method(method: Method) -> Method:
-    """Have ``method.compute_loss`` run ``torch.compile(loss)``: on CPU it fuses the losses' element-wise work
-    and drops most per-op overhead of the forward and backward passes (compiled on the first call)."""
-    method.compiled = torch.compile(method.loss, dynamic=False)
-    return method
