@@ -158,7 +158,7 @@ class RmrlUpdate:
         from rm_torchrl.methods.method import compile_method
         from rm_torchrl.methods.registry import METHODS, build_method
         from rm_torchrl.train.training_data import training_buffer
-        from rm_torchrl.train.trainer import NonFinite, gradient_step
+        from rm_torchrl.train.update import NonFinite, gradient_step
 
         torch.manual_seed(seed)
         recipe = iql_recipe(total, compile)
