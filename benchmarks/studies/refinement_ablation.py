@@ -198,8 +198,10 @@ def preregistered(here: dict, shown: str, budget: str, reps: int) -> list[str]:
     interim = any(min(len(xs), len(ys)) < want for _, xs, ys, _ in rows)
     lines = [f"### The pre-registered comparisons ({'interim: ' if interim else ''}PROTOCOL.md section 8)", "",
              f"Planned: {want} seeds a cell. Primary: the final score; secondary: {SECONDARY}. Shown: the CI of P "
-             "excludes 0.5 and p < 0.05" + (". Interim: a cell has fewer than the planned seeds, so nothing is "
-                                           "decided here." if interim else "."), "",
+             "excludes 0.5 and p < 0.05" + (". A comparison is decided once both its cells hold the planned seeds; "
+                                           "until then it is interim and decides nothing. The Holm p, beside the "
+                                           "rule, is over the four comparisons' p as they stand." if interim
+                                           else "."), "",
              "| comparison | seeds (x / y) | P(x > y) [95% CI] | p | Holm p | verdict | secondary: P [95% CI] | p |",
              "|---|---|---:|---:|---:|---|---:|---:|"]
     for title, xs, ys, c in rows:
@@ -208,7 +210,7 @@ def preregistered(here: dict, shown: str, budget: str, reps: int) -> list[str]:
             continue
         f, last = c["final"], c["last"]
         held = (f["P"].lo > 0.5 or f["P"].hi < 0.5) and f["p"] < 0.05
-        verdict = "interim" if interim else ("shown" if held else "not shown")
+        verdict = "interim" if min(len(xs), len(ys)) < want else ("shown" if held else "not shown")
         lines.append(f"| {title} | {len(xs)} / {len(ys)} | {_p(f)} | {f['p']:.3f} | {next(adjusted):.3f} | "
                      f"{verdict} | {_p(last)} | {last['p']:.3f} |")
     return [*lines, ""]
