@@ -228,3 +228,21 @@ def test_the_readers_mark_first_steps_so_a_slice_sampled_d4rl_file_is_refused():
     buffer.append_transform(LabelRM("door"))
     with pytest.raises(RMError, match="starts mid-episode"):
         buffer.sample()
+
+
+def test_a_collectors_traj_ids_and_rm_env_columns_refine_as_the_episode_column_does():
+    """Data as a collector with RMEnvTransform writes it: episodes in ``("collector", "traj_ids")`` and the online
+    ``rm_holding``/``rm_encoding`` columns; ``refine(episode_key=...)`` gives what the plain ``episode`` column gives."""
+    from rm_torchrl.data.synthetic import make_door_like
+    from rm_torchrl.refine.pipeline import refine
+
+    plain = make_door_like(1_200, episode_length=150)
+    collected = plain.exclude("episode")
+    collected.set(("collector", "traj_ids"), plain["episode"].clone())
+    for key in ("rm_holding", "rm_encoding", ("next", "rm_holding"), ("next", "rm_encoding")):
+        collected.set(key, torch.zeros(len(plain), 3))
+    a, report_a = refine(plain, "door", alpha=0.5)
+    b, report_b = refine(collected, "door", alpha=0.5, episode_key=("collector", "traj_ids"))
+    assert report_a == report_b and len(a) == len(b) > 0
+    assert torch.equal(a["rm_state"], b["rm_state"]) and torch.equal(a["observation"], b["observation"])
+    assert "rm_encoding" not in b.keys() and ("next", "rm_holding") not in b.keys(True)
