@@ -378,7 +378,8 @@ def test_door_500k_adopts_an_arm_that_became_the_default(tmp_path):
     for arm, overrides, stop, why in [
             ("wdpi1e-2", ["optim.weight_decay_pi=1.0e-2"], 500_000,
              f"optim.weight_decay_pi: 0.01 -> {optim.weight_decay_pi!r}"),
-            ("lra3e-5", [f"optim.lr_actor={optim.lr_actor!r}"], 100_000, "it stops at 100,000 of 500,000 steps")]:
+            ("lra3e-5", [f"optim.lr_actor={optim.lr_actor!r}"], 100_000,
+             "step 100,000 of its trainer.steps 500,000 (stopped at trainer.stop_at, killed, or still training)")]:
         other = tmp_path / f"other-{arm}-{stop}"
         arm_run(other, arm, overrides, stop=stop, seed=seed)
         refused = door_500k("adopt", "--arms", arm, "--seeds", str(seed), "--results", str(other))
