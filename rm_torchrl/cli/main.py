@@ -67,7 +67,10 @@ def _version() -> str:
         return __version__
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The ``rmrl`` parser; given the command line, only its command's own arguments are built (some build
+    theirs from the library: ``rmrl generate`` lists the generators), so a command imports no other's code."""
+    wanted = None if argv is None else next((a for a in argv if not a.startswith("-")), "")
     parser = argparse.ArgumentParser(prog="rmrl", description=__doc__)
     parser.add_argument("--version", action="version", version=f"rmrl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -75,7 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
         module = command_module(name)
         p = sub.add_parser(name, help=module.HELP, description=getattr(module, "DESCRIPTION", None),
                            add_help=getattr(module, "ADD_HELP", True))
-        module.add_arguments(p)
+        if wanted is None or name == wanted:
+            module.add_arguments(p)
         p.set_defaults(run=module.run)
     return parser
 
@@ -100,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     except RMError as err:
         print(f"rmrl: error: {err}", file=sys.stderr)
         return 2
-    args = build_parser().parse_args(argv)  # --help and --version exit here, having imported no torch
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv).parse_args(argv)  # --help and --version exit here, having imported no torch
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)  # the trainer checkpoints on it instead, inside its loop
     try:
