@@ -164,7 +164,7 @@ def _p(c: dict) -> str:
 
 
 def seed_list(runs) -> str:
-    return ", ".join(str(r.seed) for r in runs)
+    return ", ".join(str(seed) for seed in sorted(r.seed for r in runs))
 
 
 def last_evaluations(run) -> float:
